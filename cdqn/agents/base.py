@@ -1,0 +1,65 @@
+"""What every agent provides to the trainer, and the shared ε-greedy exploration."""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple, Protocol
+
+import numpy as np
+
+from cdqn.config import TrainConfig
+
+
+class StepRecord(NamedTuple):
+    """Signals of one training step (paper notation)."""
+
+    loss: float
+    q1: float
+    """Q1 = Q(s, a) before the update."""
+    q2: float
+    """Q2 = max_a' Q(s', a') before the update."""
+    u: float
+    """Control reward u(t) injected into the loss (0 without a controller)."""
+    x_e: float
+    """Integrated tracking error x_e = ∫ (r + γ Q̂2 − Q1) dt, Δt = α."""
+    theta1: float
+    """Θ1 = Θ((s, a), (s, a))."""
+    theta2: float
+    """Θ2 = Θ((s, a), (s', a'))."""
+
+
+class Agent(Protocol):
+    """A learning agent driven by :func:`cdqn.trainer.train`."""
+
+    epsilon: float
+
+    def act(self, obs: np.ndarray) -> int: ...
+
+    def update(
+        self, obs: np.ndarray, action: int, reward: float, next_obs: np.ndarray, terminated: bool
+    ) -> StepRecord: ...
+
+    def start_episode(self) -> None: ...
+
+    def state_dict(self) -> dict[str, Any]: ...
+
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
+class EpsilonGreedy:
+    """ε-greedy as in the research code: start at ``eps_start``; every random action lowers
+    ε by ``eps_dec`` while ε ≥ ``eps_end``."""
+
+    def __init__(self, cfg: TrainConfig, n_actions: int, rng: np.random.Generator) -> None:
+        self.epsilon = cfg.eps_start
+        self.eps_end = cfg.eps_end
+        self.eps_dec = cfg.eps_dec
+        self.n_actions = n_actions
+        self.rng = rng
+
+    def explore(self) -> int | None:
+        """A random action with probability ε (and decay ε), else None."""
+        if self.rng.random() > self.epsilon:
+            return None
+        if self.epsilon >= self.eps_end:
+            self.epsilon -= self.eps_dec
+        return int(self.rng.integers(self.n_actions))

@@ -1,0 +1,2 @@
+"""Robust-control side of cdqn: learning-dynamics plant, controller synthesis, runtime
+controllers.  Nothing in this package imports torch."""

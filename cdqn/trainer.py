@@ -1,0 +1,151 @@
+"""The training loop: environment steps, agent updates, per-step and per-episode records."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import gymnasium as gym
+import numpy as np
+from tqdm.auto import tqdm
+
+from cdqn.agents.base import Agent
+from cdqn.signals import SignalBuffer
+
+
+class DivergenceError(RuntimeError):
+    """Learning diverged: a non-finite or too large value in the loss, Q or controller."""
+
+    def __init__(self, reason: str, episode: int, step: int) -> None:
+        super().__init__(f"{reason} (episode {episode}, step {step})")
+        self.reason, self.episode, self.step = reason, episode, step
+
+
+@dataclass
+class EpisodeStats:
+    """Per-episode metrics, logged to MLflow with step = episode index."""
+
+    episode: int
+    episode_return: float
+    return_ma100: float
+    episode_length: int
+    loss_mean: float
+    u_abs_mean: float
+    theta1_mean: float
+    unstable_fraction: float
+    """Share of the episode's steps with Θ1 < γ Θ2 (the nominal model unstable)."""
+
+    def metrics(self) -> dict[str, float]:
+        return {k: float(v) for k, v in vars(self).items() if k != "episode"}
+
+
+@dataclass
+class TrainState:
+    """What the loop carries across episodes (and what a checkpoint must restore)."""
+
+    episode: int = 0
+    returns: list[float] = field(default_factory=list)
+    total_steps: int = 0
+
+
+def episode_stats(
+    episode: int, rows: np.ndarray, returns: list[float], discount: float
+) -> EpisodeStats:
+    """Summarise one episode's rows of the signal table (columns of :mod:`cdqn.signals`)."""
+    loss, u, theta1, theta2 = rows[:, 9], rows[:, 5], rows[:, 7], rows[:, 8]
+    finite_loss = loss[np.isfinite(loss)]
+    last = returns[-100:]
+    return EpisodeStats(
+        episode=episode,
+        episode_return=returns[-1],
+        return_ma100=float(np.mean(last)),
+        episode_length=len(rows),
+        loss_mean=float(finite_loss.mean()) if finite_loss.size else float("nan"),
+        u_abs_mean=float(np.abs(u).mean()),
+        theta1_mean=float(theta1.mean()),
+        unstable_fraction=float(np.mean(theta1 < discount * theta2)),
+    )
+
+
+def train(
+    env: gym.Env,
+    agent: Agent,
+    *,
+    episodes: int,
+    seed: int,
+    discount: float,
+    q_limit: float,
+    signals: SignalBuffer,
+    state: TrainState | None = None,
+    on_episode: Callable[[EpisodeStats, TrainState], None] | None = None,
+    progress: bool = True,
+    desc: str = "",
+) -> TrainState:
+    """Run ``episodes`` episodes (from ``state.episode`` on) and return the final state.
+
+    The environment is seeded with ``seed`` at the first episode of a fresh run.  Raises
+    :class:`DivergenceError` when a step's loss, Q-values or control are non-finite or
+    ``|Q|`` exceeds ``q_limit``; everything up to that step is in ``signals``.
+    """
+    state = state or TrainState()
+    bar = tqdm(
+        total=episodes,
+        initial=state.episode,
+        desc=desc,
+        disable=not progress,
+        unit="ep",
+        dynamic_ncols=True,
+        leave=True,
+    )
+    recent = deque(maxlen=20)
+    try:
+        while state.episode < episodes:
+            ep = state.episode
+            obs, _ = env.reset(seed=seed if ep == 0 else None)
+            agent.start_episode()
+            start_row, ret, t0 = signals.n, 0.0, time.perf_counter()
+            for t in range(1_000_000_000):
+                action = agent.act(obs)
+                next_obs, reward, terminated, truncated, _ = env.step(action)
+                rec = agent.update(obs, action, float(reward), next_obs, bool(terminated))
+                signals.append(ep, t, float(reward), rec)
+                _check(rec.loss, rec.q1, rec.q2, rec.u, q_limit, ep, t)
+                ret += float(reward)
+                obs = next_obs
+                if terminated or truncated:
+                    break
+            state.returns.append(ret)
+            length = signals.n - start_row
+            state.total_steps += length
+            state.episode += 1
+            stats = episode_stats(ep, signals.rows(start_row), state.returns, discount)
+            recent.append((length, time.perf_counter() - t0))
+            if on_episode is not None:
+                on_episode(stats, state)
+            steps, secs = (sum(x) for x in zip(*recent, strict=True))
+            bar.set_postfix(
+                ret=f"{ret:.0f}",
+                ma100=f"{stats.return_ma100:.1f}",
+                eps=f"{agent.epsilon:.2f}",
+                sps=f"{steps / max(secs, 1e-9):.0f}",
+                refresh=False,
+            )
+            bar.update(1)
+    finally:
+        bar.close()
+    return state
+
+
+def _check(loss: float, q1: float, q2: float, u: float, q_limit: float, ep: int, t: int) -> None:
+    for name, value in (("Q1", q1), ("Q2", q2), ("u", u)):
+        if not math.isfinite(value):
+            raise DivergenceError(f"non-finite {name} = {value}", ep, t)
+    if not (math.isfinite(loss) or math.isnan(loss)):
+        raise DivergenceError(f"non-finite loss = {loss}", ep, t)
+    if abs(q1) > q_limit or abs(q2) > q_limit:
+        raise DivergenceError(
+            f"|Q| = {max(abs(q1), abs(q2)):.3g} above train.q_limit={q_limit:g}", ep, t
+        )
