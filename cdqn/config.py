@@ -15,7 +15,8 @@ from hydra.core.config_store import ConfigStore
 
 
 class ConfigError(ValueError):
-    """A configuration value cdqn cannot run with; the message names key, value and what is allowed."""
+    """A configuration value cdqn cannot run with; the message names key, value and what
+    is allowed."""
 
 
 CONTROLLERS = ("h2", "hinf", "hinf_f", "ddqn", "none")
@@ -215,7 +216,8 @@ def validate(cfg: Config) -> None:
         ),
         (
             cfg.controller.discretization in ("zoh", "tustin", "euler"),
-            f"controller.discretization={cfg.controller.discretization!r}: allowed zoh, tustin, euler",
+            f"controller.discretization={cfg.controller.discretization!r}: "
+            "allowed zoh, tustin, euler",
         ),
         (cfg.network.width > 0, f"network.width={cfg.network.width}: must be a positive integer"),
         (

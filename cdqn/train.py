@@ -82,6 +82,8 @@ def run(cfg: DictConfig, progress: bool = True) -> RunResult:
     )
     if setup.design:
         recorder.log_dict(setup.design, "design/controller.json")
+    if setup.artifacts is not None:
+        recorder.log_dir(setup.artifacts, "design")
     log.info(
         "MLflow run %s (%s, %s, seed %d)",
         recorder.run_id,

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from cdqn.config import ConfigError, ControllerConfig, WeightsConfig
+from cdqn.config import CONTROLLERS, ConfigError, ControllerConfig, WeightsConfig
 from cdqn.control.runtime import (
     NoControl,
     RuntimeController,
@@ -25,7 +26,10 @@ class ControllerSetup:
     source: str
     """``paper`` (research-code values), ``synthesized`` or ``scheduled`` (per-step LQR)."""
     design: dict[str, Any] = field(default_factory=dict)
-    """Design artefacts for the run's records (gains or matrices, bounds, certificate)."""
+    """Design record, logged as ``design/controller.json`` (gains or matrices, bounds,
+    certificate)."""
+    artifacts: Path | None = None
+    """A folder of further design artefacts (plots, tables), logged under ``design/``."""
 
 
 def make_controller(
@@ -69,6 +73,4 @@ def _paper_controller(cfg: ControllerConfig, weights: WeightsConfig, lr: float) 
         ctrl = StateSpace(A, B, C, None, lr, cfg.discretization, cfg.reset_state)
         design = {"kind": "hinf", "A": A.tolist(), "B": B.tolist(), "C": C.tolist(), "D": []}
         return ControllerSetup(ctrl, source="paper", design=design)
-    raise ConfigError(
-        f"controller.name={cfg.name!r}: allowed {', '.join(('h2', 'hinf', 'hinf_f', 'ddqn', 'none'))}"
-    )
+    raise ConfigError(f"controller.name={cfg.name!r}: allowed {', '.join(CONTROLLERS)}")

@@ -1,0 +1,29 @@
+"""Shared test helpers: compose the real Hydra configs, tiny budgets, temporary stores."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import DictConfig
+
+from cdqn.config import register_configs
+
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+TINY = ["network.width=32", "train.episodes=3", "train.progress=false"]
+"""Overrides that make a training run take well under a second."""
+
+register_configs()
+
+
+def compose_config(overrides: list[str] | None = None) -> DictConfig:
+    """The configuration ``python -m cdqn.train <overrides>`` would run."""
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        return compose("config", overrides=list(overrides or []))
+
+
+@pytest.fixture
+def tracking_uri(tmp_path: Path) -> str:
+    """A fresh embedded MLflow store for one test."""
+    return f"sqlite:///{tmp_path / 'mlflow.db'}"
