@@ -1,0 +1,78 @@
+"""Every option of every config group composes, validates and builds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from cdqn.agents import make_agent
+from cdqn.config import Config, validate
+from cdqn.control.factory import make_controller
+from cdqn.envs import env_sizes, make_env
+from cdqn.network import NetworkSpec, QNetwork
+from tests.conftest import CONF_DIR, compose_config
+
+
+def _options(group: str) -> list[str]:
+    return sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
+
+
+def test_defaults_are_the_paper_settings() -> None:
+    cfg = compose_config()
+    assert cfg.env.id == "CartPole-v1" and cfg.env.max_episode_steps == 200
+    assert cfg.controller.name == "hinf"
+    assert cfg.network.width == 2500 and cfg.network.dtype == "float64"
+    assert cfg.train.lr == 5e-5 and cfg.train.discount == 1.0
+    assert cfg.tracking.experiment == "cdqn"
+    assert cfg.weights.name == "cartpole"
+
+
+@pytest.mark.parametrize("group", ["env", "controller", "weights", "network", "tracking", "train"])
+def test_every_option_composes_and_validates(group: str) -> None:
+    options = _options(group)
+    assert options
+    for option in options:
+        cfg = compose_config([f"{group}={option}"])
+        conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
+        validate(conf)
+
+
+@pytest.mark.parametrize("env", _options("env"))
+@pytest.mark.parametrize("controller", _options("controller"))
+def test_every_env_and_controller_builds(env: str, controller: str) -> None:
+    cfg = compose_config([f"env={env}", f"controller={controller}", "network=small"])
+    conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
+    gym_env = make_env(conf.env)
+    n_obs, n_actions = env_sizes(gym_env)
+    if conf.env.obs_indices is not None:
+        assert n_obs == len(conf.env.obs_indices)
+    net = QNetwork(NetworkSpec(n_obs, n_actions, conf.network.width, conf.network.dtype))
+    setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
+    agent = make_agent(conf.controller, conf.train, net, setup, np.random.default_rng(0))
+    obs, _ = gym_env.reset(seed=0)
+    action = agent.act(obs)
+    next_obs, reward, terminated, _, _ = gym_env.step(action)
+    rec = agent.update(obs, action, float(reward), next_obs, terminated)
+    assert np.isfinite(rec.q1) and rec.theta1 > 0
+    gym_env.close()
+
+
+def test_weights_follow_the_env_choice() -> None:
+    for env in ("cartpole", "acrobot", "mountaincar"):
+        assert compose_config([f"env={env}"]).weights.name == env
+    cfg = compose_config(["env=acrobot", "weights=cartpole"])
+    assert cfg.weights.h2.w_c == 20000.0
+
+
+def test_any_discrete_gymnasium_id_runs_through_env_id() -> None:
+    cfg = compose_config(["env.id=CartPole-v0", "env.max_episode_steps=null"])
+    env = make_env(OmegaConf.to_object(cfg).env)  # type: ignore[union-attr]
+    assert env.spec is not None and env.spec.max_episode_steps == 200
+    env.close()
+
+
+def test_network_dtype_option() -> None:
+    net = QNetwork(NetworkSpec(2, 2, 8, "float32"))
+    assert net.hidden.weight.dtype == torch.float32
