@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING
 
 
 class ConfigError(ValueError):
@@ -81,8 +82,9 @@ class ThetaBounds:
     """Range of Θ1 = Θ((s,a),(s,a)) the robust designs cover."""
     ratio: list[float] = field(default_factory=lambda: [0.8, 1.2])
     """Range of Θ2/Θ1 the robust designs cover."""
-    nominal: list[float] = field(default_factory=lambda: [220.0, 222.0])
-    """Nominal (Θ1, Θ2) of the design plant."""
+    nominal: list[float] | None = None
+    """Nominal (Θ1, Θ2) of the design plant (None: the box centre, √(Θ1_lo·Θ1_hi) and the
+    mid ratio; the paper's CartPole design used (220, 222))."""
 
 
 @dataclass
@@ -114,6 +116,59 @@ class WeightsConfig:
 
 
 @dataclass
+class SynthesisConfig:
+    plant: str = "gradient_flow"
+    """Learning plant of the design and the certificate: gradient_flow (u moves Q1 and Q2,
+    B_u = [Θ1, Θ2]: what cdqn's training step does) or paper (B_u = [Θ1, 0], the paper's
+    Eq. controlled_Q); see docs/synthesis.md."""
+    ntk_bounds: str = "config"
+    """Where the NTK box comes from: config (weights.theta_bounds) or measured (rollout)."""
+    quantiles: list[float] = field(default_factory=lambda: [0.02, 0.98])
+    """Measured box: quantiles of Θ1 and of Θ2/Θ1 over the rollout's transitions."""
+    ratio_floor: float = 0.05
+    """Measured box: transitions with Θ2/Θ1 below this (Θ2 ≈ 0, Q2 not moved) are left out
+    of the ratio range."""
+    rollout_steps: int = 3000
+    """Measured box: environment steps of the rollout of the initial network."""
+    samples: int = 200
+    """Plant samples over the box (corners included) for the cover and the designs."""
+    seed: int = 0
+    """Seed of the plant samples and of the random starts."""
+    grid: list[int] = field(default_factory=lambda: [25, 25])
+    """Certificate validation grid: points along Θ1 and along Θ2/Θ1 (corners included)."""
+    band: list[float] = field(default_factory=lambda: [1.0, 1.0e5])
+    """Band [ω_lo, ω_hi] (rad/s of learning time) over which the cover is fitted."""
+    cover_order: int = 2
+    """Order (pole/zero pairs) of the output-multiplicative cover weight."""
+    noise: list[float] = field(default_factory=lambda: [0.2, 0.5])
+    """Relative measurement-noise levels on Q1, Q2 (paper: ± 0.2, ± 0.5)."""
+    reg_integrator: float = 1.0e-3
+    """ε_i of the H∞ plant: integrator 1/s → 1/(s + ε_i), rad/s."""
+    reg_control: float = 1.0e-2
+    """ε_u of the H∞ plant: extra performance output ε_u·u (D12 full rank)."""
+    reg_sensor: float = 1.0e-4
+    """ε_s of the H∞ plant: sensor noise on the integrated error (D21 full rank)."""
+    reg_process: float = 1.0e-2
+    """ε_q of the H∞ plant: process noise into Q1, Q2 (mode at s = 0 reachable)."""
+    gamma_tol: float = 1.0e-3
+    """Relative tolerance of the γ-bisection."""
+    hsv_threshold: float = 1.0e-2
+    """Balanced reduction: drop controller states with Hankel singular value below this."""
+    decay: float = 0.05
+    """Fixed-structure design: every sample's closed loop must satisfy Re λ ≤ −decay."""
+    restarts: int = 2
+    """Fixed-structure design: random starts after the first one."""
+    start: list[float] | None = None
+    """Fixed-structure design: first start (k1, k2, k3) (None: H2 gains at the nominal)."""
+    margin: float = 1.0e-6
+    """Certificate: stable means max Re λ < −margin (rad/s of learning time)."""
+    cache: bool = True
+    """Reuse a design with the same inputs from cache_dir."""
+    cache_dir: str = "~/.cache/cdqn/designs"
+    """Folder of cached designs, one sub-folder per hash of the design inputs."""
+
+
+@dataclass
 class ControllerConfig:
     name: str = "hinf"
     """One of h2, hinf, hinf_f, ddqn, none."""
@@ -121,10 +176,15 @@ class ControllerConfig:
     """Where the gains come from: paper (research-code values) or synthesize."""
     discretization: str = "zoh"
     """Dynamic H∞ controller discretisation at Δt = α: zoh, tustin or euler."""
+    h2_gain_map: str = "paper"
+    """H2 only: paper, (k1, k2, k3) = (K1, K2, -K3) of u = -K x_a; research, the research
+    code's (-K3, -K2, K1)."""
     reset_integrator: bool = True
     """Reset the tracking-error integrator x_e at each episode start."""
     reset_state: bool = True
     """Reset the dynamic controller's state at each episode start (paper Sec. 4.2)."""
+    synthesis: SynthesisConfig = field(default_factory=SynthesisConfig)
+    """Settings of controller synthesis (controller.design=synthesize)."""
     buffer_size: int = 50000
     """DDQN: replay buffer capacity (transitions)."""
     batch_size: int = 32
@@ -161,6 +221,11 @@ class TrainConfig:
     """Show a progress bar (hidden automatically in multiruns)."""
     signals: bool = True
     """Store the per-step signals (signals/steps.parquet, signals/fft.parquet)."""
+    checkpoint_every: int = 100
+    """Episodes between checkpoints stored in the run (0: only when interrupted)."""
+    population: int = 1
+    """Seeds trained together in one process as one batch: seed, seed+1, …, seed+K−1, each
+    its own MLflow run (cdqn.population)."""
 
 
 @dataclass
@@ -171,6 +236,11 @@ class TrackingConfig:
     """MLflow experiment name."""
     log_model: bool = True
     """Store the final network as an MLflow artifact."""
+    timeout: float = 10.0
+    """Seconds a tracking server gets to answer the start-up check."""
+    skip_finished: bool = False
+    """Skip a run whose configuration and seed already have a FINISHED run in the store
+    (restarted sweeps; cdqn.sweep)."""
 
 
 @dataclass
@@ -185,12 +255,39 @@ class Config:
     """Seed of network initialisation, exploration and environment."""
     extra: dict[str, Any] = field(default_factory=dict)
     """Free-form user notes, logged as parameters."""
+    resume: str | None = None
+    """MLflow run id to continue from its last checkpoint (``python -m cdqn.train resume=<id>``)."""
+
+
+@dataclass
+class EvaluateConfig:
+    """``python -m cdqn.evaluate run_id=<id> episodes=100``: greedy evaluation of a run."""
+
+    run_id: str = MISSING
+    """MLflow run id of the trained network."""
+    episodes: int = 100
+    """Evaluation episodes."""
+    seed: int = 1_000_000
+    """Seed of the first evaluation episode; episode i uses seed + i (unlike any training seed)."""
+    log: bool = True
+    """Log the evaluation to the run (metrics eval_return_*, artifact evaluation/)."""
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+
+
+@dataclass
+class SynthesizeConfig(Config):
+    """``python -m cdqn.synthesize env=<env> controller=<hinf|hinf_f|h2> out=<dir>``."""
+
+    out: str = "synthesis"
+    """Folder for controller.json, report.txt, closed_loop_sv.csv and the plots."""
 
 
 def register_configs() -> None:
     """Register the schema in Hydra's ConfigStore as ``base_config``."""
     cs = ConfigStore.instance()
     cs.store(name="base_config", node=Config)
+    cs.store(name="base_evaluate", node=EvaluateConfig)
+    cs.store(name="base_synthesize", node=SynthesizeConfig)
 
 
 def _tf_is_proper(tf: TransferFunctionConfig) -> bool:
@@ -219,6 +316,10 @@ def validate(cfg: Config) -> None:
             f"controller.discretization={cfg.controller.discretization!r}: "
             "allowed zoh, tustin, euler",
         ),
+        (
+            cfg.controller.h2_gain_map in ("paper", "research"),
+            f"controller.h2_gain_map={cfg.controller.h2_gain_map!r}: allowed paper, research",
+        ),
         (cfg.network.width > 0, f"network.width={cfg.network.width}: must be a positive integer"),
         (
             cfg.network.dtype in ("float64", "float32"),
@@ -237,6 +338,23 @@ def validate(cfg: Config) -> None:
         (0 <= cfg.train.eps_end <= 1, f"train.eps_end={cfg.train.eps_end}: ε must lie in [0, 1]"),
         (0 <= cfg.train.eps_dec <= 1, f"train.eps_dec={cfg.train.eps_dec}: must lie in [0, 1]"),
         (cfg.train.q_limit > 0, f"train.q_limit={cfg.train.q_limit}: must be > 0"),
+        (
+            cfg.train.checkpoint_every >= 0,
+            f"train.checkpoint_every={cfg.train.checkpoint_every}: must be >= 0 (0: off)",
+        ),
+        (
+            cfg.env.max_episode_steps is None or cfg.env.max_episode_steps > 0,
+            f"env.max_episode_steps={cfg.env.max_episode_steps}: must be > 0 or null",
+        ),
+        (
+            cfg.controller.learning_starts >= 0,
+            f"controller.learning_starts={cfg.controller.learning_starts}: must be >= 0",
+        ),
+        *_tracking_checks(cfg.tracking),
+        (
+            cfg.train.population >= 1,
+            f"train.population={cfg.train.population}: the number of seeds must be >= 1",
+        ),
         (
             cfg.controller.batch_size > 0
             and cfg.controller.buffer_size >= cfg.controller.batch_size,
@@ -264,6 +382,7 @@ def validate(cfg: Config) -> None:
                     "transfer function (need a non-zero denominator of degree >= the numerator's)",
                 )
             )
+        checks.append((w.w_delta > 0, f"weights.{group}.w_delta={w.w_delta}: must be > 0"))
     tb = cfg.weights.theta_bounds
     for name in ("theta1", "ratio"):
         rng = list(getattr(tb, name))
@@ -273,6 +392,38 @@ def validate(cfg: Config) -> None:
                 f"weights.theta_bounds.{name}={rng}: need [lower, upper] with 0 < lower <= upper",
             )
         )
+    if tb.nominal is not None:
+        nominal = list(tb.nominal)
+        checks.append(
+            (
+                len(nominal) == 2 and all(v > 0 for v in nominal),
+                f"weights.theta_bounds.nominal={nominal}: need [Θ1, Θ2], both > 0, or null",
+            )
+        )
+    _raise_if_failed(checks)
+
+
+def validate_evaluate(cfg: EvaluateConfig) -> None:
+    """Refuse evaluation settings cdqn cannot run with (same message style as :func:`validate`)."""
+    _raise_if_failed(
+        [
+            (bool(cfg.run_id.strip()), "run_id='': give the MLflow run id, run_id=<id>"),
+            (cfg.episodes > 0, f"episodes={cfg.episodes}: must be > 0"),
+            (cfg.seed >= 0, f"seed={cfg.seed}: must be >= 0"),
+            *_tracking_checks(cfg.tracking),
+        ]
+    )
+
+
+def _tracking_checks(cfg: TrackingConfig) -> list[tuple[bool, str]]:
+    return [
+        (bool(cfg.uri.strip()), "tracking.uri='': give an MLflow tracking URI"),
+        (bool(cfg.experiment.strip()), "tracking.experiment='': give an experiment name"),
+        (cfg.timeout > 0, f"tracking.timeout={cfg.timeout}: must be > 0 seconds"),
+    ]
+
+
+def _raise_if_failed(checks: list[tuple[bool, str]]) -> None:
     errors = [msg for ok, msg in checks if not ok]
     if errors:
         raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(errors))

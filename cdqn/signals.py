@@ -28,6 +28,16 @@ class SignalBuffer:
         self.data[self.n] = (episode, step, reward, *rec[1:8], rec[0])
         self.n += 1
 
+    def extend(self, rows: np.ndarray) -> None:
+        """Append a block of rows (columns as :data:`COLUMNS`)."""
+        need = self.n + len(rows)
+        if need > len(self.data):
+            grown = np.empty((max(need, 2 * len(self.data)), len(COLUMNS)))
+            grown[: self.n] = self.data[: self.n]
+            self.data = grown
+        self.data[self.n : need] = rows
+        self.n = need
+
     def rows(self, start: int, stop: int | None = None) -> np.ndarray:
         return self.data[start : self.n if stop is None else stop]
 

@@ -9,21 +9,99 @@ one metric call per environment step.
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import tempfile
 import time
+import urllib.error
+import urllib.request
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import mlflow
 from mlflow.entities import Metric, Param, RunStatus, RunTag
+from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 
+from cdqn.config import ConfigError
 from cdqn.signals import SignalBuffer, amplitude_spectra
 from cdqn.trainer import EpisodeStats
 
 MAX_PARAM_LENGTH = 6000
+CONFIG_ARTIFACT = "config.yaml"
+"""The run's resolved configuration (without the ``hydra`` section)."""
+
+
+class TrackingError(ConfigError):
+    """The tracking store named by ``tracking.uri`` cannot be used (unreachable, not an
+    MLflow server, not writable, no such run)."""
+
+
+def check_tracking(uri: str, timeout: float = 10.0) -> None:
+    """Fail fast, before anything expensive is built, when ``uri`` cannot take a run.
+
+    ``http(s)://``: the server must answer ``GET /health`` and the experiments API within
+    ``timeout`` seconds (checked directly, without MLflow's minutes-long retries).
+    ``sqlite:///`` and local paths: the folder must exist (or be creatable) and be writable.
+    """
+    scheme = urlsplit(uri).scheme
+    if scheme in ("http", "https"):
+        _check_server(uri, timeout)
+    elif scheme == "sqlite":
+        path = Path(uri[len("sqlite:///") :])
+        if str(path) not in ("", ":memory:"):
+            _check_folder(path.parent, uri)
+    elif scheme in ("", "file"):
+        _check_folder(Path(urlsplit(uri).path if scheme == "file" else uri), uri)
+
+
+def _check_server(uri: str, timeout: float) -> None:
+    base = uri.rstrip("/")
+    hint = (
+        "start one with `mlflow server --backend-store-uri sqlite:///mlflow.db --serve-artifacts "
+        f"--host {urlsplit(uri).hostname} --port {urlsplit(uri).port or 5000}`, or choose another "
+        "tracking.uri (tracking=local for an embedded store)"
+    )
+    t0 = time.monotonic()
+    try:
+        with urllib.request.urlopen(f"{base}/health", timeout=timeout) as resp:
+            body = resp.read(100).decode("utf-8", "replace").strip()
+    except urllib.error.HTTPError as err:
+        raise TrackingError(
+            f"tracking.uri={uri!r}: not an MLflow tracking server (GET /health answered "
+            f"HTTP {err.code}); {hint}"
+        ) from None
+    except (urllib.error.URLError, OSError) as err:
+        reason = getattr(err, "reason", err)
+        raise TrackingError(
+            f"tracking.uri={uri!r}: no MLflow tracking server reachable ({reason}, after "
+            f"{time.monotonic() - t0:.1f} s, tracking.timeout={timeout:g}); {hint}"
+        ) from None
+    if body != "OK":
+        raise TrackingError(
+            f"tracking.uri={uri!r}: not an MLflow tracking server (GET /health answered "
+            f"{body[:40]!r}, expected 'OK'); {hint}"
+        )
+    api = f"{base}/api/2.0/mlflow/experiments/search?max_results=1"
+    try:
+        with urllib.request.urlopen(api, timeout=timeout) as resp:
+            json.loads(resp.read())
+    except (urllib.error.URLError, OSError, ValueError) as err:
+        raise TrackingError(
+            f"tracking.uri={uri!r}: the server answers /health but not the MLflow REST API "
+            f"({err}); is it an MLflow tracking server (not --artifacts-only)?"
+        ) from None
+
+
+def _check_folder(folder: Path, uri: str) -> None:
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise TrackingError(f"tracking.uri={uri!r}: cannot create {folder} ({err})") from None
+    if not os.access(folder, os.W_OK):
+        raise TrackingError(f"tracking.uri={uri!r}: folder {folder} is not writable")
 
 
 def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -78,18 +156,53 @@ class Recorder:
         run_name: str,
         params: Mapping[str, Any],
         tags: Mapping[str, str],
+        config: Mapping[str, Any] | None = None,
     ) -> Recorder:
-        """Create the experiment if needed, open a run, log params and tags."""
+        """Create the experiment if needed, open a run, log params, tags and ``config`` (the
+        resolved configuration, as artifact ``config.yaml``, which resume and evaluation read).
+
+        Raises :class:`TrackingError` when the store refuses (e.g. an experiment of that name
+        is deleted, the artifact location is not writable).
+        """
         mlflow.set_tracking_uri(uri)
         client = MlflowClient(uri)
-        exp = client.get_experiment_by_name(experiment)
-        exp_id = exp.experiment_id if exp is not None else client.create_experiment(experiment)
-        run = client.create_run(exp_id, run_name=run_name, tags=dict(tags))
+        try:
+            exp = client.get_experiment_by_name(experiment)
+            if exp is not None and exp.lifecycle_stage != "active":
+                raise TrackingError(
+                    f"tracking.experiment={experiment!r} is deleted in {uri}; restore it "
+                    "(mlflow experiments restore) or choose another name"
+                )
+            exp_id = exp.experiment_id if exp is not None else client.create_experiment(experiment)
+            run = client.create_run(exp_id, run_name=run_name, tags=dict(tags))
+        except MlflowException as err:
+            raise TrackingError(f"tracking.uri={uri!r}: cannot open a run ({err})") from None
         rec = cls(client, run.info.run_id)
         items = [Param(k, _param_value(v)) for k, v in sorted(params.items())]
         for i in range(0, len(items), 100):
             client.log_batch(rec.run_id, params=items[i : i + 100])
+        if config is not None:
+            try:
+                client.log_dict(rec.run_id, dict(config), CONFIG_ARTIFACT)
+            except Exception as err:  # the artifact store: permissions, proxy, disk
+                client.set_terminated(rec.run_id, status="FAILED")
+                raise TrackingError(
+                    f"tracking.uri={uri!r}: cannot write artifacts of run {rec.run_id} to "
+                    f"{run.info.artifact_uri} ({type(err).__name__}: {err})"
+                ) from None
         return rec
+
+    @classmethod
+    def attach(cls, uri: str, run_id: str) -> Recorder:
+        """Reopen the existing run ``run_id`` (status RUNNING again) to continue it."""
+        mlflow.set_tracking_uri(uri)
+        client = MlflowClient(uri)
+        client.update_run(run_id, status="RUNNING")
+        return cls(client, run_id)
+
+    def logged_episodes(self) -> set[int]:
+        """Episodes whose metrics are already in the store (a resumed run skips them)."""
+        return {m.step for m in self.client.get_metric_history(self.run_id, "episode_return")}
 
     def set_tags(self, tags: Mapping[str, str]) -> None:
         self.client.log_batch(self.run_id, tags=[RunTag(k, str(v)) for k, v in tags.items()])

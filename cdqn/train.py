@@ -4,30 +4,55 @@ train, record to MLflow.
     python -m cdqn.train                                   # env=cartpole controller=hinf
     python -m cdqn.train env=acrobot controller=hinf_f seed=3 train.episodes=500
     python -m cdqn.train -m controller=h2,hinf,hinf_f,ddqn seed='range(10)'
+    python -m cdqn.train resume=<run_id>                   # continue an interrupted run
+
+Exit status: 0 finished (or a multirun that ran; its summary lists failed jobs), 1 the run
+FAILED (diverged or crashed), 2 refused configuration or tracking store, 128 + signal number
+when SIGINT/SIGTERM stopped the run (KILLED, resumable).
 """
 
 from __future__ import annotations
 
 import logging
+import math
+import os
 import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+import gymnasium as gym
 import hydra
 import numpy as np
 import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
+from mlflow.exceptions import MlflowException
+from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
 
-from cdqn.agents import make_agent
+from cdqn.agents import Agent, make_agent
+from cdqn.callbacks import record_job
+from cdqn.checkpoint import CheckpointStore, capture, restore
+from cdqn.cli import preflight, resume_conflicts
 from cdqn.config import Config, ConfigError, register_configs, validate
-from cdqn.control.factory import make_controller
+from cdqn.control.errors import DesignError
+from cdqn.control.factory import ControllerSetup, make_controller
 from cdqn.envs import env_sizes, make_env
+from cdqn.interrupt import GracefulStop
 from cdqn.network import NetworkSpec, QNetwork, save_network
+from cdqn.ntk_bounds import measured_box
+from cdqn.population import run_population
 from cdqn.signals import SignalBuffer
-from cdqn.tracking import Recorder, flatten, git_commit
+from cdqn.sweep import config_hash, ensure_store, finished_elsewhere
+from cdqn.tracking import (
+    CONFIG_ARTIFACT,
+    Recorder,
+    TrackingError,
+    check_tracking,
+    flatten,
+    git_commit,
+)
 from cdqn.trainer import DivergenceError, EpisodeStats, TrainState, train
 
 log = logging.getLogger("cdqn")
@@ -40,6 +65,22 @@ class RunResult:
     status: str
     final_score: float
     """Mean return of the last 100 episodes."""
+    reason: str | None = None
+    """The run's ``failure_reason`` when it ended FAILED or KILLED."""
+    signum: int | None = None
+    """The signal that stopped a KILLED run."""
+
+
+@dataclass
+class Job:
+    """Everything one run trains with, built from its configuration."""
+
+    conf: Config
+    env: gym.Env
+    setup: ControllerSetup
+    net: QNetwork
+    agent: Agent
+    rng: np.random.Generator
 
 
 def resolve_tracking_uri(uri: str) -> str:
@@ -51,39 +92,71 @@ def resolve_tracking_uri(uri: str) -> str:
     return uri
 
 
-def run(cfg: DictConfig, progress: bool = True) -> RunResult:
-    """Train one configuration and record it as one MLflow run."""
-    conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
-    validate(conf)
-    env = make_env(conf.env)
+def build(conf: Config, env: gym.Env) -> Job:
+    """Controller, network and agent of ``conf`` on ``env``; the same calls, in the same
+    order, for a new run and a resumed one (so both see the same random streams)."""
     n_obs, n_actions = env_sizes(env)
-    setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
-
     torch.manual_seed(conf.seed)
     rng = np.random.default_rng(conf.seed)
     net = QNetwork(NetworkSpec(n_obs, n_actions, conf.network.width, conf.network.dtype))
+    box = measured_box(conf, net)  # None unless controller.synthesis.ntk_bounds=measured
+    setup = make_controller(
+        conf.controller, conf.weights, conf.train.discount, conf.train.lr, box=box
+    )
     agent = make_agent(conf.controller, conf.train, net, setup, rng)
+    return Job(conf, env, setup, net, agent, rng)
 
-    params = flatten(OmegaConf.to_container(cfg, resolve=True))  # type: ignore[arg-type]
+
+def run(cfg: DictConfig, progress: bool = True) -> RunResult:
+    """Train one configuration and record it as one MLflow run; with ``resume=<run_id>``
+    continue that run from its last checkpoint instead (:func:`resume`)."""
+    if cfg.get("resume"):
+        return resume(cfg, progress)
+    if cfg.train.get("population", 1) > 1:  # K seeds as one batch (cdqn.population)
+        return run_population(cfg, progress).summary()
+    conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
+    validate(conf)
+    uri = resolve_tracking_uri(conf.tracking.uri)
+    if uri.startswith("sqlite:///") or conf.tracking.skip_finished:  # sweeps (cdqn.sweep)
+        check_tracking(uri, conf.tracking.timeout)
+        ensure_store(uri, conf.tracking.experiment)  # a fresh SQLite store, once
+        if conf.tracking.skip_finished and (done := finished_elsewhere(cfg, uri)) is not None:
+            return RunResult(done[0], "FINISHED", done[1], "skipped: already FINISHED")
+    env = make_env(conf.env)
+    try:
+        check_tracking(uri, conf.tracking.timeout)
+        job = build(conf, env)
+    except BaseException:
+        env.close()
+        raise
+
+    container = OmegaConf.to_container(cfg, resolve=True)
+    params = flatten(container)  # type: ignore[arg-type]
     tags = {
         "env": conf.env.name,
         "env_id": conf.env.id,
         "controller": conf.controller.name,
         "seed": str(conf.seed),
         "git_commit": git_commit(),
-        "design_source": setup.source,
+        "design_source": job.setup.source,
+        "config_hash": config_hash(cfg),
     }
-    recorder = Recorder.start(
-        resolve_tracking_uri(conf.tracking.uri),
-        conf.tracking.experiment,
-        f"{conf.env.name}-{conf.controller.name}-s{conf.seed}",
-        params,
-        tags,
-    )
-    if setup.design:
-        recorder.log_dict(setup.design, "design/controller.json")
-    if setup.artifacts is not None:
-        recorder.log_dir(setup.artifacts, "design")
+    try:
+        recorder = Recorder.start(
+            uri,
+            conf.tracking.experiment,
+            f"{conf.env.name}-{conf.controller.name}-s{conf.seed}",
+            params,
+            tags,
+            config=container,  # type: ignore[arg-type]
+        )
+    except BaseException:
+        env.close()
+        raise
+    if job.setup.design:
+        recorder.log_dict(job.setup.design, "design/controller.json")
+    if job.setup.artifacts is not None:
+        recorder.log_dir(job.setup.artifacts, "design")
     log.info(
         "MLflow run %s (%s, %s, seed %d)",
         recorder.run_id,
@@ -91,48 +164,166 @@ def run(cfg: DictConfig, progress: bool = True) -> RunResult:
         conf.controller.name,
         conf.seed,
     )
+    store = CheckpointStore(recorder.client, recorder.run_id, conf.train.signals)
+    return _train(job, recorder, store, TrainState(), SignalBuffer(), progress, set())
 
-    signals = SignalBuffer()
-    state = TrainState()
 
-    def on_episode(stats: EpisodeStats, _: TrainState) -> None:
-        recorder.log_episode(stats)
+def resume(cfg: DictConfig, progress: bool = True) -> RunResult:
+    """Continue run ``cfg.resume`` in the same MLflow run, from its last checkpoint.
+
+    The run's stored ``config.yaml`` is what runs; ``cfg`` only says where the store is
+    (``tracking.*``) and whether to show progress.  Episodes whose metrics are already in
+    the store are not logged twice.  Runs that FINISHED or diverged are refused.
+    """
+    run_id = str(cfg.resume)
+    uri = resolve_tracking_uri(cfg.tracking.uri)
+    check_tracking(uri, cfg.tracking.timeout)
+    client = MlflowClient(uri)
+    try:
+        info = client.get_run(run_id)
+    except MlflowException:
+        raise TrackingError(f"resume={run_id}: no such run in tracking.uri={uri!r}") from None
+    status, reason = info.info.status, info.data.tags.get("failure_reason", "")
+    if status == "FINISHED":
+        raise ConfigError(f"resume={run_id}: the run FINISHED; there is nothing to continue")
+    if status == "FAILED" and reason.startswith("diverged"):
+        raise ConfigError(
+            f"resume={run_id}: the run FAILED because it {reason}; with the same seed it would "
+            "diverge again (start a new run with other settings)"
+        )
+    if status == "RUNNING":
+        log.warning(
+            "run %s is marked RUNNING (its process ended without closing it, e.g. SIGKILL); "
+            "continuing it. Stop any process still training it first.",
+            run_id,
+        )
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            path = client.download_artifacts(run_id, CONFIG_ARTIFACT, tmp)
+        except Exception:
+            raise ConfigError(
+                f"resume={run_id}: the run has no {CONFIG_ARTIFACT} artifact, so it cannot be "
+                "rebuilt (was it started by cdqn.train?)"
+            ) from None
+        stored = OmegaConf.merge(OmegaConf.structured(Config), OmegaConf.load(path))
+    stored.resume = None
+    stored.tracking = cfg.tracking
+    conf: Config = OmegaConf.to_object(stored)  # type: ignore[assignment]
+    validate(conf)
+    env = make_env(conf.env)
+    try:
+        job = build(conf, env)
+        store = CheckpointStore(client, run_id, conf.train.signals)
+        ckpt = store.load()
+    except BaseException:
+        env.close()
+        raise
+    state, signals = TrainState(), SignalBuffer()
+    if ckpt is None:
+        log.warning("run %s has no usable checkpoint: training it again from episode 0", run_id)
+    else:
+        restore(ckpt, job.agent, env, state, job.rng, signals)
+    log.info(
+        "resuming MLflow run %s at episode %d of %d", run_id, state.episode, conf.train.episodes
+    )
+    recorder = Recorder.attach(uri, run_id)
+    recorder.set_tags(
+        {
+            "resumed_from_episode": str(state.episode),
+            "resume_count": str(int(info.data.tags.get("resume_count", "0")) + 1),
+        }
+    )
+    if reason:
+        recorder.set_tags({"previous_failure_reason": reason})
+        client.delete_tag(run_id, "failure_reason")
+    return _train(job, recorder, store, state, signals, progress, recorder.logged_episodes())
+
+
+def _train(
+    job: Job,
+    recorder: Recorder,
+    store: CheckpointStore,
+    state: TrainState,
+    signals: SignalBuffer,
+    progress: bool,
+    logged: set[int],
+) -> RunResult:
+    """The training loop with checkpoints, divergence and signal handling; closes the run.
+
+    Whatever happens, the signals so far, the network and the status (FINISHED, FAILED with
+    ``failure_reason``, KILLED) are written before returning or raising.
+    """
+    conf = job.conf
+    episodes, every = conf.train.episodes, conf.train.checkpoint_every
+    last_checkpoint = state.episode
+
+    def checkpoint(st: TrainState) -> None:
+        nonlocal last_checkpoint
+        recorder.flush()
+        rows = signals.n if conf.train.signals else 0
+        store.save(capture(job.agent, job.env, st, job.rng, rows), signals)
+        last_checkpoint = st.episode
+
+    def on_episode(stats: EpisodeStats, st: TrainState) -> None:
+        if stats.episode not in logged:
+            recorder.log_episode(stats)
+        if every and st.episode % every == 0 and st.episode < episodes:
+            checkpoint(st)
 
     status, reason = "FINISHED", None
-    try:
-        train(
-            env,
-            agent,
-            episodes=conf.train.episodes,
-            seed=conf.seed,
-            discount=conf.train.discount,
-            q_limit=conf.train.q_limit,
-            signals=signals,
-            state=state,
-            on_episode=on_episode,
-            progress=progress and conf.train.progress,
-            desc=f"{conf.env.name}/{conf.controller.name}/s{conf.seed}",
-        )
-    except DivergenceError as err:
-        status, reason = "FAILED", f"diverged: {err}"
-        log.error("run %s diverged: %s", recorder.run_id, err)
-    except KeyboardInterrupt:
-        status, reason = "KILLED", "interrupted"
-        raise
-    except Exception as err:
-        status, reason = "FAILED", f"{type(err).__name__}: {err}"
-        raise
-    finally:
-        if conf.train.signals:
-            recorder.log_signals(signals, conf.train.lr)
-        if conf.tracking.log_model:
-            with tempfile.TemporaryDirectory() as tmp:
-                save_network(net, Path(tmp))
-                recorder.log_dir(Path(tmp), "model")
-        recorder.finish(status, reason)
-        env.close()
+    stop = GracefulStop()
+    with stop:
+        try:
+            train(
+                job.env,
+                job.agent,
+                episodes=episodes,
+                seed=conf.seed,
+                discount=conf.train.discount,
+                q_limit=conf.train.q_limit,
+                signals=signals,
+                state=state,
+                on_episode=on_episode,
+                progress=progress and conf.train.progress,
+                desc=f"{conf.env.name}/{conf.controller.name}/s{conf.seed}",
+                should_stop=stop.requested,
+            )
+            if state.episode < episodes:  # a signal stopped training at an episode boundary
+                status = "KILLED"
+                if last_checkpoint != state.episode:
+                    checkpoint(state)
+                reason = (
+                    f"{stop.name} after episode {state.episode} of {episodes}; checkpoint "
+                    f"written, continue with resume={recorder.run_id}"
+                )
+        except DivergenceError as err:
+            status, reason = "FAILED", f"diverged: {err}"
+        except KeyboardInterrupt:
+            status = "KILLED"
+            reason = (
+                f"stopped during episode {state.episode} of {episodes}; the last checkpoint "
+                f"is at episode {last_checkpoint}, continue with resume={recorder.run_id}"
+            )
+            raise
+        except Exception as err:
+            status, reason = "FAILED", f"{type(err).__name__}: {err}"
+            raise
+        finally:
+            stop.closing()
+            try:
+                if conf.train.signals:
+                    recorder.log_signals(signals, conf.train.lr)
+                if conf.tracking.log_model:
+                    with tempfile.TemporaryDirectory() as tmp:
+                        save_network(job.net, Path(tmp))
+                        recorder.log_dir(Path(tmp), "model")
+            finally:
+                recorder.finish(status, reason)
+                job.env.close()
+                if status != "FINISHED":
+                    log.warning("run %s %s: %s", recorder.run_id, status, reason)
     score = float(np.mean(state.returns[-100:])) if state.returns else float("nan")
-    return RunResult(recorder.run_id, status, score)
+    return RunResult(recorder.run_id, status, score, reason, stop.signum)
 
 
 def _is_multirun() -> bool:
@@ -144,15 +335,37 @@ def _is_multirun() -> bool:
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(cfg: DictConfig) -> float:
+    multirun = _is_multirun()
     try:
-        result = run(cfg, progress=not _is_multirun() and sys.stderr.isatty())
-    except ConfigError as err:
+        if cfg.get("resume"):
+            conflicts = resume_conflicts(list(HydraConfig.get().overrides.task))
+            if conflicts:
+                raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(conflicts))
+        result = run(cfg, progress=not multirun and sys.stderr.isatty())
+    except (ConfigError, DesignError) as err:  # user errors, TrackingError included
         log.error("%s", err)
-        if not _is_multirun():
+        record_job("REFUSED", reason=str(err))
+        if not multirun:
             sys.exit(2)
         return float("nan")
-    return result.final_score
+    except KeyboardInterrupt:
+        log.error("interrupted")
+        sys.exit(130)
+    except Exception as err:  # a crash; the MLflow run (if any) is already FAILED
+        record_job("FAILED", reason=f"{type(err).__name__}: {err}")
+        if not multirun:
+            raise
+        log.exception("job failed")
+        return float("nan")
+    record_job(result.status, result.run_id, result.reason, result.final_score)
+    if result.status == "KILLED":
+        sys.exit(128 + (result.signum or 2))
+    if result.status == "FAILED" and not multirun:
+        sys.exit(1)
+    return result.final_score if math.isfinite(result.final_score) else float("nan")
 
 
 if __name__ == "__main__":
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
+    preflight(sys.argv[1:])
     main()

@@ -12,7 +12,7 @@ import gymnasium as gym
 import numpy as np
 from tqdm.auto import tqdm
 
-from cdqn.agents.base import Agent
+from cdqn.agents.base import Agent, StepRecord
 from cdqn.signals import SignalBuffer
 
 
@@ -83,12 +83,17 @@ def train(
     on_episode: Callable[[EpisodeStats, TrainState], None] | None = None,
     progress: bool = True,
     desc: str = "",
+    should_stop: Callable[[], bool] | None = None,
 ) -> TrainState:
     """Run ``episodes`` episodes (from ``state.episode`` on) and return the final state.
 
     The environment is seeded with ``seed`` at the first episode of a fresh run.  Raises
-    :class:`DivergenceError` when a step's loss, Q-values or control are non-finite or
-    ``|Q|`` exceeds ``q_limit``; everything up to that step is in ``signals``.
+    :class:`DivergenceError` when a step's loss, Q-values, control u or integrator x_e are
+    non-finite, ``|Q|`` exceeds ``q_limit``, or the controller's state is non-finite at the
+    end of an episode; everything up to that step is in ``signals``.  A NaN loss before the
+    first finite one means "no update yet" (Double DQN before ``learning_starts``).
+    ``should_stop`` is asked after each episode; when it answers True the loop returns
+    early, at an episode boundary.
     """
     state = state or TrainState()
     bar = tqdm(
@@ -101,6 +106,8 @@ def train(
         leave=True,
     )
     recent = deque(maxlen=20)
+    controller = getattr(agent, "controller", None)
+    loss_seen = False
     try:
         while state.episode < episodes:
             ep = state.episode
@@ -112,11 +119,21 @@ def train(
                 next_obs, reward, terminated, truncated, _ = env.step(action)
                 rec = agent.update(obs, action, float(reward), next_obs, bool(terminated))
                 signals.append(ep, t, float(reward), rec)
-                _check(rec.loss, rec.q1, rec.q2, rec.u, q_limit, ep, t)
+                if not (
+                    abs(rec.q1) <= q_limit
+                    and abs(rec.q2) <= q_limit
+                    and math.isfinite(rec.u + rec.x_e)
+                    and (math.isfinite(rec.loss) or (not loss_seen and math.isnan(rec.loss)))
+                ):
+                    _diagnose(rec, q_limit, ep, t)
+                loss_seen = loss_seen or not math.isnan(rec.loss)
                 ret += float(reward)
                 obs = next_obs
                 if terminated or truncated:
                     break
+            x_c = getattr(controller, "x", None)
+            if x_c is not None and not np.all(np.isfinite(x_c)):
+                raise DivergenceError(f"non-finite controller state x_c = {x_c}", ep, t)
             state.returns.append(ret)
             length = signals.n - start_row
             state.total_steps += length
@@ -134,18 +151,19 @@ def train(
                 refresh=False,
             )
             bar.update(1)
+            if should_stop is not None and should_stop():
+                break
     finally:
         bar.close()
     return state
 
 
-def _check(loss: float, q1: float, q2: float, u: float, q_limit: float, ep: int, t: int) -> None:
-    for name, value in (("Q1", q1), ("Q2", q2), ("u", u)):
+def _diagnose(rec: StepRecord, q_limit: float, ep: int, t: int) -> None:
+    """Raise the :class:`DivergenceError` that names what went wrong in ``rec``."""
+    for name, value in (("Q1", rec.q1), ("Q2", rec.q2), ("u", rec.u), ("x_e", rec.x_e)):
         if not math.isfinite(value):
             raise DivergenceError(f"non-finite {name} = {value}", ep, t)
-    if not (math.isfinite(loss) or math.isnan(loss)):
-        raise DivergenceError(f"non-finite loss = {loss}", ep, t)
-    if abs(q1) > q_limit or abs(q2) > q_limit:
-        raise DivergenceError(
-            f"|Q| = {max(abs(q1), abs(q2)):.3g} above train.q_limit={q_limit:g}", ep, t
-        )
+    if not math.isfinite(rec.loss):
+        raise DivergenceError(f"non-finite loss = {rec.loss}", ep, t)
+    q = max(abs(rec.q1), abs(rec.q2))
+    raise DivergenceError(f"|Q| = {q:.3g} above train.q_limit={q_limit:g}", ep, t)

@@ -102,8 +102,7 @@ class ControlledAgent:
         f2 = self.fast.forward(next_obs)
         a2 = int(np.argmax(f2.q))
         q1, q2 = float(f1.q[action]), float(f2.q[a2])
-        theta1 = self.fast.ntk(f1, action, f1, action)
-        theta2 = self.fast.ntk(f1, action, f2, a2)
+        theta1, theta2, grad_b1 = self.fast.td_terms(f1, action, f2, a2)
         q_next = q2 if (self.bootstrap_terminal or not terminated) else 0.0
 
         error = reward + self.discount * q_next - q1
@@ -112,7 +111,7 @@ class ControlledAgent:
         delta = error + u
         loss = 0.5 * self.controller.loss_weight * delta * delta
         if self.use_fast_path:
-            self.fast.sgd_step(f1, action, self.alpha * delta)
+            self.fast.sgd_step(f1, action, self.alpha * delta, grad_b1)
         else:
             loss = self._autograd_step(obs, action, reward, q_next, u)
         return StepRecord(loss, q1, q2, u, self.x_e, theta1, theta2)

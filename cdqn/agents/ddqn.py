@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from cdqn.agents.base import EpsilonGreedy, StepRecord
-from cdqn.agents.replay import ReplayBuffer
+from cdqn.agents.replay import Batch, ReplayBuffer
 from cdqn.config import ControllerConfig, TrainConfig
 from cdqn.network import FastTwoLayer, QNetwork
 
@@ -34,6 +34,9 @@ class DDQNAgent:
         self.net = net
         self.target = copy.deepcopy(net)
         self.fast = FastTwoLayer(net)
+        self.fast_target = FastTwoLayer(self.target)
+        self.use_fast_path = train.fast_path
+        self.lr = train.lr
         self.cfg = cfg
         self.discount = train.discount
         self.explorer = EpsilonGreedy(train, net.spec.n_actions, rng)
@@ -61,14 +64,15 @@ class DDQNAgent:
     ) -> StepRecord:
         f1, f2 = self.fast.forward(obs), self.fast.forward(next_obs)
         a2 = int(np.argmax(f2.q))
+        theta1, theta2, _ = self.fast.td_terms(f1, action, f2, a2)
         record = StepRecord(
             loss=self.last_loss,
             q1=float(f1.q[action]),
             q2=float(f2.q[a2]),
             u=0.0,
             x_e=0.0,
-            theta1=self.fast.ntk(f1, action, f1, action),
-            theta2=self.fast.ntk(f1, action, f2, a2),
+            theta1=theta1,
+            theta2=theta2,
         )
         self.buffer.add(obs, action, reward, next_obs, terminated)
         self.steps += 1
@@ -81,6 +85,8 @@ class DDQNAgent:
 
     def _learn(self) -> float:
         b = self.buffer.sample(self.cfg.batch_size)
+        if self.use_fast_path:
+            return self._fast_learn(b)
         obs = torch.as_tensor(b.obs, dtype=self.dtype)
         next_obs = torch.as_tensor(b.next_obs, dtype=self.dtype)
         actions = torch.as_tensor(b.actions)
@@ -98,12 +104,24 @@ class DDQNAgent:
         self.optimizer.step()
         return float(loss.detach())
 
+    def _fast_learn(self, b: Batch) -> float:
+        """:meth:`_learn` with the two-layer network's gradients written out by hand
+        (:meth:`cdqn.network.FastTwoLayer.minibatch_step`)."""
+        n = len(b.actions)
+        online = self.fast.forward_batch(np.concatenate([b.obs, b.next_obs]))  # one product
+        best = np.argmax(online.q[n:], axis=1)  # Double DQN: the online network's argmax
+        q_next = self.fast_target.forward_batch(b.next_obs).q[np.arange(n), best]
+        target = b.rewards + self.discount * (1.0 - b.terminated) * q_next
+        f = type(online)(*(field[:n] for field in online))
+        return self.fast.minibatch_step(f, b.actions, target, self.lr)
+
     def state_dict(self) -> dict[str, Any]:
         return {
             "net": self.net.state_dict(),
             "target": self.target.state_dict(),
             "epsilon": self.explorer.epsilon,
             "steps": self.steps,
+            "last_loss": self.last_loss,
             "buffer": self.buffer.state_dict(),
         }
 
@@ -112,4 +130,5 @@ class DDQNAgent:
         self.target.load_state_dict(state["target"])
         self.explorer.epsilon = state["epsilon"]
         self.steps = state["steps"]
+        self.last_loss = state.get("last_loss", float("nan"))
         self.buffer.load_state_dict(state["buffer"])

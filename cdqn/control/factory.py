@@ -33,22 +33,30 @@ class ControllerSetup:
 
 
 def make_controller(
-    cfg: ControllerConfig, weights: WeightsConfig, discount: float, lr: float
+    cfg: ControllerConfig,
+    weights: WeightsConfig,
+    discount: float,
+    lr: float,
+    box: Any = None,
 ) -> ControllerSetup:
-    """Controller for ``cfg.name``; ``ddqn`` and ``none`` get :class:`NoControl`."""
+    """Controller for ``cfg.name``; ``ddqn`` and ``none`` get :class:`NoControl`.
+
+    ``box`` (a :class:`cdqn.control.box.NTKBox`, e.g. measured on the run's network) replaces
+    ``weights.theta_bounds`` in a synthesised design."""
     name = cfg.name
     if name in ("none", "ddqn"):
         return ControllerSetup(NoControl(), source="none")
     if name == "h2":
-        ctrl = ScheduledLQR(discount, list(weights.h2.w_x), weights.h2.w_c)
-        design = {"kind": "h2", "w_x": list(weights.h2.w_x), "w_c": weights.h2.w_c}
+        w_x, w_c = list(weights.h2.w_x), weights.h2.w_c
+        ctrl = ScheduledLQR(discount, w_x, w_c, cfg.h2_gain_map)
+        design = {"kind": "h2", "w_x": w_x, "w_c": w_c, "gain_map": cfg.h2_gain_map}
         return ControllerSetup(ctrl, source="scheduled", design=design)
     if cfg.design == "paper":
         return _paper_controller(cfg, weights, lr)
     if cfg.design == "synthesize":
         from cdqn.control.design import synthesized_controller  # noqa: PLC0415
 
-        return synthesized_controller(cfg, weights, discount, lr)
+        return synthesized_controller(cfg, weights, discount, lr, box)
     raise ConfigError(f"controller.design={cfg.design!r}: allowed paper, synthesize")
 
 

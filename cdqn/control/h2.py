@@ -5,22 +5,52 @@ For the step's NTK values (Θ1, Θ2) the LQR problem
 .. math::  \\min_u \\tfrac12\\int_0^\\infty x_a^\\top W_x x_a + u^\\top W_c u\\,dt,
            \\qquad \\dot x_a = A(\\Theta)\\,x_a + B_u(\\Theta)\\,u
 
-of the augmented plant (:func:`cdqn.control.plant.augmented_plant`) is solved through the
-stable invariant subspace of the Hamiltonian
+of the augmented plant (:func:`cdqn.control.plant.augmented_plant`) is solved at every
+training step, so it has to be cheap.  :func:`lqr_gain` solves any single-input LQR
+problem through the stable invariant subspace of the Hamiltonian
 
 .. math::  H = \\begin{bmatrix} A & -B W_c^{-1} B^\\top \\\\ -W_x & -A^\\top\\end{bmatrix},
-           \\qquad X = U_2 U_1^{-1},\\qquad K = W_c^{-1} B^\\top X,
+           \\qquad X = U_2 U_1^{-1},\\qquad K = W_c^{-1} B^\\top X.
 
-which for this 3-state problem costs one 6×6 eigendecomposition (tens of microseconds).
-The optimal control is ``u = −K x_a``; with the paper's gains ``u = −k1 Q1 − k2 Q2 + k3 x_e``
-this is ``(k1, k2, k3) = (K_1, K_2, −K_3)``.
+:func:`h2_gains` uses a closed form of the same solution for this plant (a few
+microseconds instead of an eigendecomposition).  With ``a = Θ1``, ``b = Θ2``,
+``c = Θ1 − γΘ2`` and ``W_x = diag(w1, w2, w3)``, the open loop has
+``det(sI − A) = s²(s + c)`` and ``adj(sI − A) B = [a s(s − γb), −ab s, −a(s − γb)]``.
+The return-difference (Chang–Letov) identity makes the closed-loop characteristic
+polynomial ``p(s) = s³ + e1 s² + e2 s + e3`` the stable spectral factor of
+
+.. math::  p(s)\\,p(-s) = -(z^3 - p_1 z^2 + p_2 z - p_3),\\qquad z = s^2,
+
+.. math::  p_1 = c^2 + \\frac{a^2 w_1}{W_c},\\quad
+           p_2 = \\frac{a^2}{W_c}\\big((w_1\\gamma^2 + w_2)\\,b^2 + w_3\\big),\\quad
+           p_3 = \\frac{a^2 w_3 \\gamma^2 b^2}{W_c}.
+
+With the roots ``z_i = r_i²`` (``Re r_i > 0``), ``e1 = Σ r_i``, ``e2 = Σ r_i r_j``,
+``e3 = r1 r2 r3 = √p3``, and ``e2 = (e1² − p1)/2``; ``e1`` is the largest real root of the
+quartic ``g(e) = (e² − p1)²/4 − 2 e3 e − p2`` (its four roots are the sign choices
+``±r1 ± r2 ± r3`` with product ``+e3``).  It is the only fixed point of the increasing map
+``f(e) = √(p1 + 2√(p2 + 2 e3 e))`` (from ``e1² = p1 + 2 e2``, ``e2² = p2 + 2 e1 e3``, both
+``e``'s positive), so two steps of ``f`` from an upper bound (Fujiwara's bound on the
+``z_i``) stay above it and nearly reach it; Newton's method on ``g``, which is convex and
+increasing there, then decreases monotonically to it in two or three steps.
+Matching ``det(sI − A + B K) = p(s)`` coefficient by coefficient gives the gain
+``u = −K x_a``:
+
+.. math::  K_1 = \\frac{e_1 - c}{a},\\qquad K_3 = \\frac{e_3}{a\\gamma b},\\qquad
+           K_2 = -\\frac{e_2 + a\\gamma b K_1 + a K_3}{a b}.
+
+With the paper's gains ``u = −k1 Q1 − k2 Q2 + k3 x_e`` this is
+``(k1, k2, k3) = (K_1, K_2, −K_3)``.  :func:`h2_gains_batch` evaluates the same formulas
+for arrays of operating points (one per member of a population).
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from cdqn.control.plant import augmented_plant
+from cdqn.control.plant import augmented_plant, check_plant, reduction_basis
 
 
 class LQRError(RuntimeError):
@@ -28,10 +58,12 @@ class LQRError(RuntimeError):
 
 
 def lqr_gain(A: np.ndarray, B: np.ndarray, w_x: np.ndarray, w_c: float) -> np.ndarray:
-    """Single-input LQR gain K (``u = −K x``) from the Hamiltonian's stable subspace."""
+    """Single-input LQR gain K (``u = −K x``) from the Hamiltonian's stable subspace;
+    ``w_x`` is the diagonal of the state weight or the full matrix."""
     n = A.shape[0]
     b = B.reshape(n, 1)
-    H = np.block([[A, -(b @ b.T) / w_c], [-np.diag(w_x), -A.T]])
+    W = np.diag(w_x) if np.ndim(w_x) == 1 else np.asarray(w_x, dtype=float)
+    H = np.block([[A, -(b @ b.T) / w_c], [-W, -A.T]])
     eigval, eigvec = np.linalg.eig(H)
     stable = eigval.real < 0
     if int(stable.sum()) != n:
@@ -41,10 +73,117 @@ def lqr_gain(A: np.ndarray, B: np.ndarray, w_x: np.ndarray, w_c: float) -> np.nd
     return (b.T @ X).ravel() / w_c
 
 
+_NEWTON_ITERATIONS = 100
+"""Cap on Newton steps; they converge in two or three, and stop when they stop moving."""
+
+
 def h2_gains(
     theta1: float, theta2: float, discount: float, w_x: np.ndarray, w_c: float
 ) -> tuple[float, float, float]:
-    """The paper's (k1, k2, k3) of the LQR on the augmented model at (Θ1, Θ2)."""
+    """The paper's (k1, k2, k3) of the LQR on the augmented model at (Θ1, Θ2), in closed
+    form (module docstring); raises :class:`LQRError` where no stabilising LQR exists."""
+    a, b, g = float(theta1), float(theta2), float(discount)
+    w1, w2, w3 = np.asarray(w_x, dtype=float).tolist()
+    wc = float(w_c)
+    agb = a * g * b
+    if agb == 0.0 or w3 <= 0.0 or wc <= 0.0:
+        raise LQRError(
+            f"no stabilising LQR at Θ1={a}, Θ2={b}, γ={g}, w3={w3}: the integrator state "
+            "x_e must be controllable through Θ1, Θ2 and weighted (w3 > 0)"
+        )
+    c = a - g * b
+    s = a * a / wc
+    p1 = c * c + s * w1
+    p2 = s * ((w1 * g * g + w2) * b * b + w3)
+    e3 = math.sqrt(s * w3) * abs(g * b)
+    e = 3.0 * math.sqrt(2.0 * max(abs(p1), math.sqrt(abs(p2)), (0.5 * e3 * e3) ** (1 / 3)))
+    for _ in range(2):
+        e = math.sqrt(p1 + 2.0 * math.sqrt(p2 + 2.0 * e3 * e))
+    for _ in range(_NEWTON_ITERATIONS):
+        y = e * e - p1
+        new = e - (0.25 * y * y - 2.0 * e3 * e - p2) / (e * y - 2.0 * e3)
+        if not new < e:  # monotone from above: no further decrease means converged
+            break
+        e = new
+    e1 = e
+    e2 = 0.5 * (e1 * e1 - p1)
+    if not (e1 > 0.0 and e2 > 0.0 and e1 * e2 > e3 > 0.0):
+        raise LQRError(f"no stabilising LQR at Θ1={a}, Θ2={b} (closed loop not Hurwitz)")
+    k1 = (e1 - c) / a
+    k3 = e3 / agb
+    k2 = -(e2 + agb * k1 + a * k3) / (a * b)
+    return k1, k2, -k3
+
+
+def h2_gains_batch(
+    theta1: np.ndarray, theta2: np.ndarray, discount: float, w_x: np.ndarray, w_c: float
+) -> np.ndarray:
+    """:func:`h2_gains` for arrays of operating points; returns ``(n, 3)`` gains.
+
+    The same formulas, vectorised; it agrees with :func:`h2_gains` to rounding (the
+    Newton iterates run in lockstep until every point has converged).
+    """
+    a = np.asarray(theta1, dtype=float)
+    b = np.asarray(theta2, dtype=float)
+    g = float(discount)
+    w1, w2, w3 = np.asarray(w_x, dtype=float).tolist()
+    wc = float(w_c)
+    agb = a * g * b
+    if np.any(agb == 0.0) or w3 <= 0.0 or wc <= 0.0:
+        raise LQRError("no stabilising LQR: some Θ1·γ·Θ2 is zero or w3 <= 0")
+    c = a - g * b
+    s = a * a / wc
+    p1 = c * c + s * w1
+    p2 = s * ((w1 * g * g + w2) * b * b + w3)
+    e3 = np.sqrt(s * w3) * np.abs(g * b)
+    cube_root = np.power(0.5 * e3 * e3, np.full_like(e3, 1 / 3))  # libm pow, as ** in h2_gains
+    bound = np.maximum(np.maximum(np.abs(p1), np.sqrt(np.abs(p2))), cube_root)
+    e = 3.0 * np.sqrt(2.0 * bound)
+    for _ in range(2):
+        e = np.sqrt(p1 + 2.0 * np.sqrt(p2 + 2.0 * e3 * e))
+    for _ in range(_NEWTON_ITERATIONS):
+        y = e * e - p1
+        new = e - (0.25 * y * y - 2.0 * e3 * e - p2) / (e * y - 2.0 * e3)
+        moving = new < e
+        if not moving.any():
+            break
+        e = np.where(moving, new, e)
+    e2 = 0.5 * (e * e - p1)
+    if not np.all((e > 0.0) & (e2 > 0.0) & (e * e2 > e3) & (e3 > 0.0)):
+        raise LQRError("no stabilising LQR at some operating point (closed loop not Hurwitz)")
+    k1 = (e - c) / a
+    k3 = e3 / agb
+    k2 = -(e2 + agb * k1 + a * k3) / (a * b)
+    return np.stack([k1, k2, -k3], axis=-1)
+
+
+def h2_gains_reference(
+    theta1: float, theta2: float, discount: float, w_x: np.ndarray, w_c: float
+) -> tuple[float, float, float]:
+    """(k1, k2, k3) through the Hamiltonian eigendecomposition (:func:`lqr_gain`); the
+    reference the closed form is tested against."""
     plant = augmented_plant(theta1, theta2, discount)
     K = lqr_gain(plant.A, plant.B_u, np.asarray(w_x, dtype=float), float(w_c))
+    return float(K[0]), float(K[1]), float(-K[2])
+
+
+def h2_gains_plant(
+    theta1: float, theta2: float, discount: float, w_x: np.ndarray, w_c: float, plant: str
+) -> tuple[float, float, float]:
+    """(k1, k2, k3) of the LQR at (Θ1, Θ2) on the learning plant ``plant``
+    (:mod:`cdqn.control.plant`).
+
+    ``paper``: :func:`h2_gains` (the paper's Sec. 4.1, closed form).  ``gradient_flow``: the
+    conserved mode ``Θ2 Q1 − Θ1 Q2`` is uncontrollable at s = 0, so no LQR of the full
+    augmented plant exists (the Hamiltonian has eigenvalues on the imaginary axis); the LQR
+    is solved on the minimal part ``x = N x_r`` (``A_r = NᵀAN``, ``B_r = NᵀB_u``, state weight
+    ``Nᵀ W_x N``) and applied as ``u = −K_r Nᵀ x``, which leaves the conserved mode alone and
+    gives the minimal part the LQR's closed loop.
+    """
+    if check_plant(plant) == "paper":
+        return h2_gains(theta1, theta2, discount, w_x, w_c)
+    p = augmented_plant(theta1, theta2, discount, plant)
+    N = reduction_basis(np.array([[theta1, theta2]]), 3, plant)[0]
+    W = N.T @ np.diag(np.asarray(w_x, dtype=float)) @ N
+    K = lqr_gain(N.T @ p.A @ N, N.T @ p.B_u, W, float(w_c)) @ N.T
     return float(K[0]), float(K[1]), float(-K[2])

@@ -12,7 +12,7 @@ from typing import Protocol
 import numpy as np
 import scipy.linalg
 
-from cdqn.control.h2 import h2_gains
+from cdqn.control.h2 import LQRError, h2_gains
 
 
 class RuntimeController(Protocol):
@@ -55,22 +55,44 @@ class StaticGain:
 
 
 class ScheduledLQR:
-    """Gain-scheduled H2: the LQR gains re-solved at every step's (Θ1, Θ2) (paper Sec. 4.1)."""
+    """Gain-scheduled H2: the LQR gains re-solved at every step's (Θ1, Θ2) (paper Sec. 4.1).
 
-    def __init__(self, discount: float, w_x: list[float], w_c: float) -> None:
+    ``gain_map="paper"`` applies ``u = −K x_a`` as the paper writes it,
+    ``(k1, k2, k3) = (K_1, K_2, −K_3)``.  ``gain_map="research"`` applies the research
+    code's assignment ``(k1, k2, k3) = (−K_3, −K_2, K_1)``, which is not the LQR's closed
+    loop on the model but is what produced the paper's H2 results.
+
+    Where no stabilising LQR exists at a step's (Θ1, Θ2) (e.g. Θ2 = 0 leaves Q2
+    uncontrollable), the previous step's gains are kept and ``unsolved_steps`` counts it.
+    """
+
+    def __init__(
+        self, discount: float, w_x: list[float], w_c: float, gain_map: str = "paper"
+    ) -> None:
+        if gain_map not in ("paper", "research"):
+            raise ValueError(f"controller.h2_gain_map={gain_map!r}: allowed paper, research")
         self.discount = discount
         self.w_x = np.asarray(w_x, dtype=float)
         self.w_c = float(w_c)
+        self.research_map = gain_map == "research"
         self.gains = (0.0, 0.0, 0.0)
         self.loss_weight = 1.0
+        self.unsolved_steps = 0
 
     def reset(self) -> None:
         pass
 
     def step(self, x_e: float, q1: float, q2: float, theta1: float, theta2: float) -> float:
-        k1, k2, k3 = h2_gains(theta1, theta2, self.discount, self.w_x, self.w_c)
-        self.gains = (k1, k2, k3)
-        self.loss_weight = 1.0 / (1.0 + k1)
+        try:
+            k1, k2, k3 = h2_gains(theta1, theta2, self.discount, self.w_x, self.w_c)
+        except LQRError:
+            self.unsolved_steps += 1
+            k1, k2, k3 = self.gains
+        else:
+            if self.research_map:
+                k1, k2, k3 = k3, -k2, k1
+            self.gains = (k1, k2, k3)
+            self.loss_weight = 1.0 / (1.0 + k1)
         return -k1 * q1 - k2 * q2 + k3 * x_e
 
 

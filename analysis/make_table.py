@@ -1,0 +1,87 @@
+"""The paper's results table from the stored runs.
+
+    python analysis/make_table.py                          # Markdown on stdout, files in tables/
+    python analysis/make_table.py --tracking-uri http://127.0.0.1:5000 --experiment cdqn
+    python analysis/make_table.py --compare-paper --out tables/ --threshold acrobot=-100
+
+Writes ``result_summary.{md,csv,tex}`` and the per-run ``run_scores.csv`` into ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+if __package__ in (None, ""):  # run as a script: make the repository root importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from analysis import table as tbl  # noqa: E402
+from analysis.cli import add_store_arguments, note, open_store, select_runs  # noqa: E402
+
+
+def parse_thresholds(items: list[str]) -> dict[str, float]:
+    """``["acrobot=-100", ...]`` -> ``{"acrobot": -100.0}``."""
+    out = {}
+    for item in items:
+        env, sep, value = item.partition("=")
+        if not sep:
+            raise argparse.ArgumentTypeError(f"--threshold {item!r}: expected ENV=VALUE")
+        out[env.strip()] = float(value)
+    return out
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="make_table.py",
+        description="Final scores per controller and environment (paper: tab:result_summary).",
+    )
+    add_store_arguments(parser)
+    parser.add_argument("--out", type=Path, default=Path("tables"), help="output folder")
+    parser.add_argument(
+        "--compare-paper", action="store_true", help="add the paper's numbers beside each cell"
+    )
+    parser.add_argument(
+        "--threshold",
+        action="append",
+        default=[],
+        metavar="ENV=VALUE",
+        help="solve threshold for an environment (default: the runs' env.solve_threshold)",
+    )
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    thresholds = parse_thresholds(args.threshold)
+    start = time.perf_counter()
+    store = open_store(args)
+    runs = select_runs(store)
+    episodes = store.episodes(tbl.TABLE_METRICS, runs)
+    if episodes.empty:
+        note(f"error: the runs in {store.describe()} have no episode metrics")
+        return 1
+    table = tbl.build(episodes, runs, thresholds)
+    for line in tbl.missing_lines(table, "/".join(store.statuses)):
+        note(line)
+
+    markdown = tbl.to_markdown(table, args.compare_paper)
+    print(markdown)
+    print()
+    print(tbl.notes(table))
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "result_summary.md").write_text(markdown + "\n\n" + tbl.notes(table) + "\n")
+    table.summary.to_csv(args.out / "result_summary.csv", index=False)
+    table.scores.to_csv(args.out / "run_scores.csv", index=False)
+    (args.out / "result_summary.tex").write_text(tbl.to_latex(table, args.compare_paper))
+    note(
+        f"{len(runs)} runs from {store.describe()} in {time.perf_counter() - start:.1f} s; "
+        f"wrote {args.out}/result_summary.{{md,csv,tex}} and run_scores.csv"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,272 @@
+"""The paper's results table (``tab:result_summary``) from per-episode metrics.
+
+Per run, the *final score* is the mean ``episode_return`` of its last 100 episodes (all of
+them if it has fewer) and the *solve episode* is the first episode, counted from 1, whose
+``return_ma100`` reaches the environment's solve threshold (param ``env.solve_threshold``).
+Per (controller, environment) cell: mean ± std of the final scores over seeds (population
+std, ``ddof = 0``), the number of seeds, how many of them solved and the median solve
+episode, where a seed that never solved counts as never (so the median is "n/a" once half
+the seeds or more never solved).  The best mean of each environment is bold.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import NamedTuple
+
+import numpy as np
+import pandas as pd
+
+from analysis.paper import PAPER_SCORES
+from analysis.style import (
+    CONTROLLER_ORDER,
+    ENV_ORDER,
+    controller_latex,
+    controller_text,
+    env_text,
+    ordered,
+)
+
+LAST_EPISODES = 100
+"""Episodes averaged for a run's final score (paper: "final scores after 2000 episodes")."""
+STD_DDOF = 0
+"""Delta degrees of freedom of the std over seeds (NumPy's default)."""
+TABLE_METRICS = ("episode_return", "return_ma100")
+"""The only metrics the table reads."""
+
+
+class Table(NamedTuple):
+    """Per-run scores and the per-cell summary behind the rendered tables."""
+
+    scores: pd.DataFrame
+    """One row per run: ``run_id, env, controller, seed, episodes, final_score,
+    solve_threshold, solve_episode``."""
+    summary: pd.DataFrame
+    """One row per present (controller, env) cell, see :func:`summarize`."""
+    controllers: list[str]
+    envs: list[str]
+
+
+def run_scores(
+    episodes: pd.DataFrame,
+    runs: pd.DataFrame,
+    thresholds: Mapping[str, float] | None = None,
+    last: int = LAST_EPISODES,
+) -> pd.DataFrame:
+    """Final score and solve episode of every run in ``episodes``.
+
+    ``runs`` supplies each run's ``solve_threshold``; ``thresholds`` (env -> value)
+    overrides it per environment.
+    """
+    thresholds = dict(thresholds or {})
+    info = runs.set_index("run_id")
+    rows = []
+    for run_id, df in episodes.groupby("run_id", sort=False):
+        df = df.sort_values("episode")
+        env = str(df["env"].iloc[0])
+        threshold = float(thresholds.get(env, info.at[run_id, "solve_threshold"]))
+        returns = df["episode_return"].to_numpy(dtype=float)
+        reached = (
+            np.flatnonzero(df["return_ma100"].to_numpy(dtype=float) >= threshold)
+            if np.isfinite(threshold)
+            else np.zeros(0, dtype=int)
+        )
+        rows.append(
+            {
+                "run_id": run_id,
+                "env": env,
+                "controller": df["controller"].iloc[0],
+                "seed": df["seed"].iloc[0],
+                "episodes": len(df),
+                "final_score": float(np.mean(returns[-last:])),
+                "solve_threshold": threshold,
+                "solve_episode": (
+                    float(df["episode"].iloc[reached[0]] + 1) if reached.size else np.nan
+                ),
+            }
+        )
+    cols = [
+        "run_id",
+        "env",
+        "controller",
+        "seed",
+        "episodes",
+        "final_score",
+        "solve_threshold",
+        "solve_episode",
+    ]
+    return pd.DataFrame(rows, columns=cols)
+
+
+def summarize(scores: pd.DataFrame) -> pd.DataFrame:
+    """One row per (controller, env) present in ``scores``.
+
+    Columns ``controller, env, n_seeds, mean, std, min_episodes, max_episodes,
+    solve_threshold, n_solved, median_solve_episode, paper_mean, paper_std, best``
+    (``best``: the highest mean of its environment; ties are all best).
+    """
+    rows = []
+    for (ctrl, env), df in scores.groupby(["controller", "env"], sort=False):
+        solve = df["solve_episode"].to_numpy(dtype=float)
+        thresholds = df["solve_threshold"].dropna().unique()
+        median = float(np.median(np.where(np.isnan(solve), np.inf, solve)))
+        paper = PAPER_SCORES.get((str(ctrl), str(env)))
+        rows.append(
+            {
+                "controller": ctrl,
+                "env": env,
+                "n_seeds": len(df),
+                "mean": float(df["final_score"].mean()),
+                "std": float(np.std(df["final_score"].to_numpy(dtype=float), ddof=STD_DDOF)),
+                "min_episodes": int(df["episodes"].min()),
+                "max_episodes": int(df["episodes"].max()),
+                "solve_threshold": float(thresholds[0]) if len(thresholds) == 1 else np.nan,
+                "n_solved": int(np.isfinite(solve).sum()),
+                "median_solve_episode": median if np.isfinite(median) else np.nan,
+                "paper_mean": paper.mean if paper else np.nan,
+                "paper_std": paper.std if paper else np.nan,
+            }
+        )
+    out = pd.DataFrame(rows)
+    if out.empty:
+        return out
+    out["best"] = out["mean"] == out.groupby("env")["mean"].transform("max")
+    return out
+
+
+def build(
+    episodes: pd.DataFrame,
+    runs: pd.DataFrame,
+    thresholds: Mapping[str, float] | None = None,
+) -> Table:
+    """Scores, summary and the row / column order of the table."""
+    scores = run_scores(episodes, runs, thresholds)
+    summary = summarize(scores)
+    return Table(
+        scores,
+        summary,
+        ordered(scores["controller"], CONTROLLER_ORDER),
+        ordered(scores["env"], ENV_ORDER),
+    )
+
+
+def missing_lines(table: Table, counted: str = "FINISHED") -> list[str]:
+    """One line per paper environment, controller or cell without ``counted`` runs."""
+    what = f"no {counted} runs"
+    lines = [f"skipped: {what} for environment {e!r}" for e in ENV_ORDER if e not in table.envs]
+    lines += [
+        f"skipped: {what} for controller {ctrl!r}"
+        for ctrl in CONTROLLER_ORDER[:4]
+        if ctrl not in table.controllers
+    ]
+    present = set(zip(table.summary["controller"], table.summary["env"], strict=True))
+    lines += [
+        f"skipped: {what} for controller {ctrl!r} on {env!r}"
+        for ctrl in table.controllers
+        for env in table.envs
+        if (ctrl, env) not in present
+    ]
+    return lines
+
+
+def _cell(table: Table, ctrl: str, env: str) -> pd.Series | None:
+    s = table.summary
+    hit = s[(s["controller"] == ctrl) & (s["env"] == env)]
+    return None if hit.empty else hit.iloc[0]
+
+
+def _solve_text(row: pd.Series) -> str:
+    if not np.isfinite(row["solve_threshold"]) and row["n_solved"] == 0:
+        return "solve n/a"
+    median = row["median_solve_episode"]
+    ep = f"{median:.0f}" if np.isfinite(median) else "n/a"
+    return f"solve ep. {ep}, {row['n_solved']}/{row['n_seeds']}"
+
+
+def to_markdown(table: Table, compare_paper: bool = False) -> str:
+    """GitHub Markdown: controllers as rows, environments as columns, best mean bold."""
+    header = "| controller | " + " | ".join(env_text(e) for e in table.envs) + " |"
+    lines = [header, "|---" * (len(table.envs) + 1) + "|"]
+    for ctrl in table.controllers:
+        cells = []
+        for env in table.envs:
+            row = _cell(table, ctrl, env)
+            if row is None:
+                cells.append("—")
+                continue
+            score = f"{row['mean']:.2f} ± {row['std']:.2f}"
+            if row["best"]:
+                score = f"**{score}**"
+            text = f"{score} (n={row['n_seeds']}; {_solve_text(row)})"
+            if compare_paper:
+                text += " " + _paper_text(row)
+            cells.append(text)
+        lines.append(f"| {controller_text(ctrl)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _paper_text(row: pd.Series) -> str:
+    if not np.isfinite(row["paper_mean"]):
+        return "[paper: —]"
+    return f"[paper: {row['paper_mean']:.2f} ± {row['paper_std']:.2f}]"
+
+
+def notes(table: Table) -> str:
+    """What the numbers mean, for under the Markdown table."""
+    s = table.summary
+    episodes = f"{s['min_episodes'].min()}–{s['max_episodes'].max()}"
+    if s["min_episodes"].min() == s["max_episodes"].max():
+        episodes = str(s["min_episodes"].min())
+    thresholds = ", ".join(
+        f"{env_text(env)} {th:g}"
+        for env in table.envs
+        for th in s.loc[s["env"] == env, "solve_threshold"].dropna().unique()[:1]
+    )
+    return (
+        f"Final score: mean return of each run's last {LAST_EPISODES} episodes "
+        f"({episodes} episodes per run); mean ± std over seeds (ddof={STD_DDOF}); best mean per "
+        "environment in bold. n = seeds; solve ep. = median first episode (from 1) with "
+        f"return_ma100 ≥ threshold ({thresholds or 'none'}), k/n = seeds that reached it."
+    )
+
+
+def to_latex(table: Table, compare_paper: bool = False) -> str:
+    """A ``table`` float with a booktabs ``tabular``, labelled ``tab:result_summary``."""
+    cols = "l" + "c" * len(table.envs)
+    lines = [
+        r"% Generated by analysis/make_table.py; needs \usepackage{booktabs}.",
+        r"\begin{table}[htb]",
+        r"\centering",
+        r"\caption{Final scores: mean $\pm$ std over seeds of the mean return of each run's "
+        rf"last {LAST_EPISODES} episodes; below, seeds $n$ and median episode at which the "
+        r"100-episode moving average first reaches the solve threshold.}",
+        r"\label{tab:result_summary}",
+        rf"\begin{{tabular}}{{{cols}}}",
+        r"\toprule",
+        "Controller & " + " & ".join(_latex_escape(env_text(e)) for e in table.envs) + r" \\",
+        r"\midrule",
+    ]
+    for ctrl in table.controllers:
+        scores, extras = [], []
+        for env in table.envs:
+            row = _cell(table, ctrl, env)
+            if row is None:
+                scores.append("--")
+                extras.append("")
+                continue
+            body = rf"{row['mean']:.2f} \pm {row['std']:.2f}"
+            scores.append(rf"$\mathbf{{{body}}}$" if row["best"] else f"${body}$")
+            median = row["median_solve_episode"]
+            ep = f"{median:.0f}" if np.isfinite(median) else "n/a"
+            extra = rf"\scriptsize $n={row['n_seeds']}$, ep.~{ep}"
+            if compare_paper and np.isfinite(row["paper_mean"]):
+                extra += rf"; paper ${row['paper_mean']:.2f} \pm {row['paper_std']:.2f}$"
+            extras.append(extra)
+        lines.append(controller_latex(ctrl) + " & " + " & ".join(scores) + r" \\")
+        lines.append(" & " + " & ".join(extras) + r" \\")
+    lines += [r"\bottomrule", r"\end{tabular}", r"\end{table}"]
+    return "\n".join(lines) + "\n"
+
+
+def _latex_escape(text: str) -> str:
+    return text.replace("_", r"\_").replace("&", r"\&").replace("%", r"\%")

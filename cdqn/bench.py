@@ -1,0 +1,532 @@
+"""Training throughput: every controller against the autograd floor, populations, and the
+paper sweep's wall time on this machine.
+
+    python -m cdqn.bench                                  # CartPole, width 2500, all controllers
+    python -m cdqn.bench --env acrobot --controllers h2,hinf --steps 5000
+    python -m cdqn.bench --json                           # machine-readable, see below
+
+For each controller it measures environment steps per second of the real training code
+path with logging on: the agent's step (NTK Θ1 and Θ2, controller, SGD step or Double DQN's
+minibatch step), :func:`cdqn.trainer.train` with its per-step :class:`SignalBuffer`
+appends, divergence checks and episode statistics, and the MLflow :class:`Recorder`
+receiving every episode's metrics (a store in a temporary folder).  In the same process,
+interleaved with those measurements, it measures the **floor**: a bare online Q-learning
+step on the same network with torch autograd (forward on s, forward on s', TD loss,
+backward, SGD step) plus the environment step.  Each controller's cost is printed as a
+ratio to the floor's (``ratio_to_floor = floor steps/s ÷ controller steps/s``; ≤ 1 means
+no slower than the floor).  Numbers are medians over ``--repeats`` interleaved rounds, so
+that other load on the machine affects all of them alike.
+
+The population section trains ``K`` seeds as one batch (:mod:`cdqn.population`) and
+reports member-steps per second against the single run's steps per second of the same
+controller (the throughput of ``K`` sequential runs); its ``speedup`` is the ratio.
+
+The estimate section measures the throughput of every environment and controller of the
+paper's sweep (populations of 10 for the controlled agents, Double DQN one seed after
+another), adds the measured cost of opening and closing a run, and schedules the sweep's
+12 jobs on ``--workers`` parallel workers in launch order (Hydra's joblib launcher):
+
+    wall ≈ makespan over jobs of  Σ_seeds (episodes × L_env / steps_per_s + run overhead)
+
+``L_env`` is the mean episode length over training, an assumption stated in the output
+(``--episode-lengths``); the upper bound uses every episode at its cap.
+
+``--json`` prints ``{"floor": {"steps_per_s": …}, "controllers": {"<name>": {"steps_per_s":
+…, "ratio_to_floor": …}}, "population": {"k": 10, "speedup": …, …}, "estimate": {…}}``.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")  # one core, as each job of a sweep gets
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import logging  # noqa: E402
+import statistics  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from hydra import compose, initialize_config_dir  # noqa: E402
+from omegaconf import DictConfig, OmegaConf  # noqa: E402
+
+from cdqn.agents.base import EpsilonGreedy  # noqa: E402
+from cdqn.config import Config, register_configs  # noqa: E402
+from cdqn.control.factory import make_controller  # noqa: E402
+from cdqn.envs import env_sizes, make_env  # noqa: E402
+from cdqn.network import NetworkSpec, QNetwork  # noqa: E402
+from cdqn.population import (  # noqa: E402
+    Member,
+    build_population,
+    finish_member,
+    member_config,
+    start_member_run,
+    train_population,
+)
+from cdqn.signals import SignalBuffer  # noqa: E402
+from cdqn.tracking import Recorder  # noqa: E402
+from cdqn.trainer import DivergenceError, EpisodeStats, TrainState, train  # noqa: E402
+
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+CONTROLLERS = ("none", "h2", "hinf", "hinf_f", "ddqn")
+PAPER_ENVS = ("cartpole", "acrobot", "mountaincar")
+PAPER_CONTROLLERS = ("h2", "hinf", "hinf_f", "ddqn")
+PAPER_SEEDS = 10
+PAPER_EPISODES = 2000
+EPISODE_CAP = {"cartpole": 200, "acrobot": 500, "mountaincar": 200}
+EPISODE_LENGTH = {"cartpole": 150, "acrobot": 150, "mountaincar": 170}
+"""Assumed mean episode length over 2000 training episodes (early episodes near the cap for
+Acrobot and Mountain car, near 20 for CartPole; final returns of the paper's table)."""
+
+log = logging.getLogger("cdqn")
+
+CLOCKS = {"cpu": time.process_time, "wall": time.perf_counter}
+clock = time.process_time
+"""Seconds are CPU seconds of this process by default (``--clock cpu``): on an otherwise idle
+core they equal wall-clock seconds, and other load on a shared machine barely moves them."""
+
+
+@dataclass
+class Throughput:
+    steps: int
+    seconds: float
+    episodes: int = 0
+    metric_write_s: float = 0.0
+    """Seconds spent writing these episodes' metrics to the MLflow store (not in
+    ``seconds``)."""
+
+    @property
+    def steps_per_s(self) -> float:
+        return self.steps / self.seconds if self.seconds > 0 else float("nan")
+
+
+def compose_config(overrides: list[str]) -> DictConfig:
+    """The configuration ``python -m cdqn.train <overrides>`` would run."""
+    register_configs()
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        return compose("config", overrides=overrides)
+
+
+def _conf(cfg: DictConfig) -> Config:
+    return OmegaConf.to_object(cfg)  # type: ignore[return-value]
+
+
+def measure_floor(cfg: DictConfig, steps: int, warmup: int) -> Throughput:
+    """Bare online Q-learning with torch autograd on the same network, plus the env step."""
+    conf = _conf(cfg)
+    env = make_env(conf.env)
+    n_obs, n_actions = env_sizes(env)
+    torch.manual_seed(conf.seed)
+    net = QNetwork(NetworkSpec(n_obs, n_actions, conf.network.width, conf.network.dtype))
+    opt = torch.optim.SGD(net.parameters(), lr=conf.train.lr)
+    explorer = EpsilonGreedy(conf.train, n_actions, np.random.default_rng(conf.seed))
+    dtype, gamma = net.hidden.weight.dtype, conf.train.discount
+    obs, _ = env.reset(seed=conf.seed)
+    t0 = clock()
+    for i in range(warmup + steps):
+        if i == warmup:
+            t0 = clock()
+        q = net(torch.as_tensor(obs, dtype=dtype))  # forward on s
+        action = explorer.explore()
+        if action is None:
+            action = int(torch.argmax(q))
+        next_obs, reward, terminated, truncated, _ = env.step(action)
+        with torch.no_grad():  # forward on s'
+            q_next = net(torch.as_tensor(next_obs, dtype=dtype)).max()
+        loss = 0.5 * (float(reward) + gamma * q_next - q[action]) ** 2  # TD loss
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        obs = next_obs
+        if terminated or truncated:
+            obs, _ = env.reset()
+    seconds = clock() - t0
+    env.close()
+    return Throughput(steps, seconds)
+
+
+def measure_single(cfg: DictConfig, uri: str, steps: int, warmup: int) -> Throughput:
+    """One run's training loop (agent, trainer, signals, episode statistics handed to the
+    MLflow recorder) for ``warmup + steps`` environment steps; only whole episodes after the
+    warm-up are timed, and a diverged run is replaced by another seed's.  The recorder's
+    batched metric writes are timed apart (:attr:`Throughput.metric_write_s`)."""
+    from cdqn.train import build  # noqa: PLC0415
+
+    conf = _conf(cfg)
+    total = Throughput(0, 0.0)
+    done, seed = 0, conf.seed
+    while done < warmup + steps:
+        conf.seed = seed
+        env = make_env(conf.env)
+        job = build(conf, env)
+        recorder = Recorder.start(uri, conf.tracking.experiment, f"bench-s{seed}", {}, {})
+        recorder.flush_seconds = float("inf")  # written below, timed apart
+        state = TrainState()
+        window: list[tuple[int, int, float]] = []  # (steps, episodes, time) at its edges
+
+        def on_episode(
+            stats: EpisodeStats,
+            st: TrainState,
+            rec: Recorder = recorder,
+            window: list[tuple[int, int, float]] = window,
+            before: int = done,
+        ) -> None:
+            rec.log_episode(stats)
+            if before + st.total_steps >= warmup:
+                if not window:
+                    rec.flush()  # the warm-up's metrics
+                window[1:] = [(st.total_steps, st.episode, clock())]
+
+        try:
+            train(
+                env,
+                job.agent,
+                episodes=10**9,
+                seed=seed,
+                discount=conf.train.discount,
+                q_limit=conf.train.q_limit,
+                signals=SignalBuffer(),
+                state=state,
+                on_episode=on_episode,
+                progress=False,
+                should_stop=lambda st=state, d=done: d + st.total_steps >= warmup + steps,
+            )
+        except DivergenceError:
+            seed += 1_000
+        finally:
+            t0 = clock()
+            recorder.flush()
+            flush_s = clock() - t0
+            recorder.finish()
+            env.close()
+        if len(window) == 2:
+            (s0, e0, t0), (s1, e1, t1) = window
+            total = Throughput(
+                total.steps + s1 - s0,
+                total.seconds + t1 - t0,
+                total.episodes + e1 - e0,
+                total.metric_write_s + flush_s,
+            )
+        done += state.total_steps
+    return total
+
+
+@dataclass
+class PopulationThroughput:
+    member_steps: Throughput
+    run_overhead_s: float
+    """Seconds to open and close one member's run (params, config, signals, model)."""
+
+
+def measure_population(
+    cfg: DictConfig, uri: str, k: int, steps: int, warmup: int
+) -> PopulationThroughput:
+    """``k`` seeds as one batch for ``warmup + steps`` population steps, with each member's
+    MLflow run receiving its metrics, then its signals and model."""
+    conf = _conf(cfg)
+    setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
+    seeds = list(range(conf.seed, conf.seed + k))
+    agent, venv = build_population(conf, setup, seeds)
+    members = [Member(s, member_config(cfg, s)) for s in seeds]
+    t_open = clock()
+    for m in members:
+        m.recorder = start_member_run(m, conf, setup, uri, f"{seeds[0]}-{seeds[-1]}")
+    t_open = clock() - t_open
+    timer: dict[str, float] = {"calls": 0, "member_steps": 0}
+    ended: list[float] = []
+    flushes: list[float] = []
+    for m in members:
+        assert m.recorder is not None
+        m.recorder.flush_seconds = float("inf")  # written at the end, timed apart
+
+    def tick() -> bool:  # called once per population step
+        timer["calls"] += 1
+        if timer["calls"] > warmup:
+            timer["member_steps"] += len(agent)
+        if timer["calls"] == warmup:
+            for m in members:  # the warm-up's metrics
+                if m.recorder is not None and m.status == "RUNNING":
+                    m.recorder.flush()
+            timer["episodes0"] = sum(m.episode for m in members)
+            timer["t0"] = clock()
+        if timer["calls"] == warmup + steps:
+            timer["t1"] = clock()
+            timer["episodes1"] = sum(m.episode for m in members)
+        return False
+
+    def on_episode(m: Member, stats: Any) -> None:
+        assert m.recorder is not None
+        m.recorder.log_episode(stats)
+
+    def on_member_end(m: Member, pop: Any, j: int) -> None:
+        assert m.recorder is not None
+        t = clock()
+        m.recorder.flush()
+        flushes.append(clock() - t)
+        t = clock()
+        finish_member(m, pop.network(j), conf)
+        ended.append(clock() - t)
+
+    train_population(
+        agent,
+        venv,
+        members,
+        episodes=10**9,
+        discount=conf.train.discount,
+        q_limit=conf.train.q_limit,
+        on_episode=on_episode,
+        on_member_end=on_member_end,
+        should_stop=tick,
+        max_steps=warmup + steps,
+    )
+    for env in venv.envs:
+        env.close()
+    diverged = sum(m.status == "FAILED" for m in members)
+    if diverged:
+        log.warning("%d of %d members diverged during the measurement", diverged, k)
+    seconds = timer.get("t1", clock()) - timer.get("t0", clock())
+    episodes = int(timer.get("episodes1", 0) - timer.get("episodes0", 0))
+    measured = Throughput(int(timer["member_steps"]), seconds, episodes, sum(flushes))
+    return PopulationThroughput(measured, (t_open + sum(ended)) / k)
+
+
+def _median(values: list[float]) -> float:
+    finite = [v for v in values if np.isfinite(v)]
+    return statistics.median(finite) if finite else float("nan")
+
+
+def makespan(durations: list[float], workers: int) -> float:
+    """Wall time of jobs started in this order on ``workers`` workers (list scheduling)."""
+    free = [0.0] * workers
+    for d in durations:
+        i = int(np.argmin(free))
+        free[i] += d
+    return max(free)
+
+
+def estimate_paper_sweep(
+    uri: str,
+    width: int,
+    steps: int,
+    warmup: int,
+    workers: int,
+    k: int,
+    metric_s: float,
+    episodes: int = PAPER_EPISODES,
+    lengths: dict[str, float] | None = None,
+) -> dict[str, Any]:
+    """Measured throughput of every environment × controller of the paper's sweep and the
+    resulting wall time (module docstring); ``metric_s`` is the measured cost of writing one
+    episode's metrics, ``lengths`` the assumed mean episode lengths."""
+    lengths = dict(EPISODE_LENGTH if lengths is None else lengths)
+    rates: dict[str, dict[str, float]] = {}
+    overhead: list[float] = []
+    for env in PAPER_ENVS:
+        rates[env] = {}
+        for ctrl in PAPER_CONTROLLERS:
+            cfg = compose_config(_overrides(env, ctrl, width, uri))
+            if ctrl == "ddqn":
+                rates[env][ctrl] = measure_single(cfg, uri, steps, warmup).steps_per_s
+            else:
+                pop = measure_population(cfg, uri, k, steps // k + 1, warmup // k + 1)
+                rates[env][ctrl] = pop.member_steps.steps_per_s
+                overhead.append(pop.run_overhead_s)
+    per_run = _median(overhead)
+    jobs: dict[str, list[float]] = {"expected": [], "upper": []}
+    for env in PAPER_ENVS:
+        for ctrl in PAPER_CONTROLLERS:
+            for kind, length in (("expected", lengths[env]), ("upper", EPISODE_CAP[env])):
+                run_s = episodes * (length / rates[env][ctrl] + metric_s) + per_run
+                jobs[kind].append(PAPER_SEEDS * run_s)
+    total_steps = sum(
+        PAPER_SEEDS * episodes * lengths[e] * len(PAPER_CONTROLLERS) for e in PAPER_ENVS
+    )
+    return {
+        "steps_per_s": rates,
+        "run_overhead_s": per_run,
+        "metric_write_s_per_episode": metric_s,
+        "episodes": episodes,
+        "episode_length": lengths,
+        "episode_cap": dict(EPISODE_CAP),
+        "workers": workers,
+        "expected_env_steps": total_steps,
+        "expected_hours": makespan(jobs["expected"], workers) / 3600,
+        "upper_bound_hours": makespan(jobs["upper"], workers) / 3600,
+    }
+
+
+def _overrides(env: str, controller: str, width: int, uri: str) -> list[str]:
+    return [
+        f"env={env}",
+        f"controller={controller}",
+        f"network.width={width}",
+        f"tracking.uri={uri}",
+        "tracking.experiment=bench",
+        "train.progress=false",
+    ]
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    parser = argparse.ArgumentParser(
+        prog="python -m cdqn.bench", description=__doc__.split("\n")[0]
+    )
+    parser.add_argument("--env", default="cartpole", help="env config (default cartpole)")
+    parser.add_argument("--controllers", default=",".join(CONTROLLERS))
+    parser.add_argument("--width", type=int, default=2500, help="hidden units (paper: 2500)")
+    parser.add_argument("--steps", type=int, default=3000, help="timed steps per measurement")
+    parser.add_argument(
+        "--warmup", type=int, default=1200, help="untimed steps first (> DDQN's learning_starts)"
+    )
+    parser.add_argument("--repeats", type=int, default=3, help="interleaved rounds; medians")
+    parser.add_argument("--population", type=int, default=10, help="K of the population (0: skip)")
+    parser.add_argument("--workers", type=int, default=2, help="parallel sweep workers")
+    parser.add_argument("--no-estimate", action="store_true", help="skip the sweep estimate")
+    parser.add_argument(
+        "--only-estimate", action="store_true", help="only the sweep estimate (no table)"
+    )
+    parser.add_argument("--episodes", type=int, default=PAPER_EPISODES, help="episodes per run")
+    parser.add_argument(
+        "--episode-lengths",
+        default=",".join(f"{k}={v}" for k, v in EPISODE_LENGTH.items()),
+        help="assumed mean episode length per environment, e.g. cartpole=150,acrobot=150",
+    )
+    parser.add_argument(
+        "--clock", choices=sorted(CLOCKS), default="cpu", help="cpu or wall seconds"
+    )
+    parser.add_argument("--json", action="store_true", help="print JSON instead of tables")
+    args = parser.parse_args(argv)
+    global clock
+    clock = CLOCKS[args.clock]
+    logging.basicConfig(level=logging.ERROR)
+    logging.getLogger("cdqn").setLevel(logging.ERROR)
+    torch.set_num_threads(1)
+    controllers = [] if args.only_estimate else [c for c in args.controllers.split(",") if c]
+    lengths = {k: float(v) for k, v in (kv.split("=") for kv in args.episode_lengths.split(","))}
+
+    with tempfile.TemporaryDirectory() as tmp:
+        uri = f"sqlite:///{Path(tmp) / 'bench.db'}"
+        floor: list[float] = []
+        single: dict[str, list[float]] = {c: [] for c in controllers}
+        pop: dict[str, list[float]] = {c: [] for c in controllers if c != "ddqn"}
+        cfgs = {c: compose_config(_overrides(args.env, c, args.width, uri)) for c in controllers}
+        base = (
+            cfgs[controllers[0]]
+            if controllers
+            else compose_config(_overrides(args.env, "none", args.width, uri))
+        )
+        k = args.population
+        metric: list[float] = []  # seconds of MLflow metric writes per episode
+
+        def keep(t: Throughput) -> float:
+            if t.episodes:
+                metric.append(t.metric_write_s / t.episodes)
+            return t.steps_per_s
+
+        for _ in range(args.repeats):
+            floor.append(measure_floor(base, args.steps, args.warmup).steps_per_s)
+            for c in controllers:
+                single[c].append(keep(measure_single(cfgs[c], uri, args.steps, args.warmup)))
+                if k > 1 and c in pop:
+                    p = measure_population(
+                        cfgs[c], uri, k, args.steps // k + 1, args.warmup // k + 1
+                    )
+                    pop[c].append(keep(p.member_steps))
+        floor_sps = _median(floor)
+        result: dict[str, Any] = {
+            "env": args.env,
+            "width": args.width,
+            "clock": args.clock,
+            "floor": {"steps_per_s": floor_sps},
+            "controllers": {
+                c: {
+                    "steps_per_s": _median(v),
+                    "ratio_to_floor": floor_sps / _median(v),
+                }
+                for c, v in single.items()
+            },
+            "metric_write_s_per_episode": _median(metric),
+        }
+        if k > 1 and pop:
+            by = {
+                c: {
+                    "steps_per_s": _median(v),
+                    "speedup": _median(v) / _median(single[c]),
+                }
+                for c, v in pop.items()
+            }
+            main_ctrl = "hinf" if "hinf" in by else next(iter(by))
+            result["population"] = {
+                "k": k,
+                "controller": main_ctrl,
+                "speedup": by[main_ctrl]["speedup"],
+                "by_controller": by,
+            }
+        if not args.no_estimate:
+            result["estimate"] = estimate_paper_sweep(
+                uri,
+                args.width,
+                args.steps,
+                args.warmup,
+                args.workers,
+                max(k, 1),
+                result["metric_write_s_per_episode"],
+                args.episodes,
+                lengths,
+            )
+    if args.json:
+        print(json.dumps(result, indent=1))
+    else:
+        print(format_report(result))
+    return result
+
+
+def format_report(r: dict[str, Any]) -> str:
+    lines = [
+        f"cdqn.bench: {r['env']}, width {r['width']}, one core, logging on ({r['clock']} seconds)",
+        "",
+        f"{'':<26}{'steps/s':>10}{'cost / floor':>14}",
+        f"{'floor (torch autograd)':<26}{r['floor']['steps_per_s']:>10.0f}{1.0:>14.2f}",
+    ]
+    for name, c in r["controllers"].items():
+        lines.append(f"{name:<26}{c['steps_per_s']:>10.0f}{c['ratio_to_floor']:>14.2f}")
+    lines.append(
+        f"(MLflow episode metrics: {1e3 * r['metric_write_s_per_episode']:.1f} ms per episode "
+        "and run, written in batches, timed apart)"
+    )
+    if "population" in r:
+        p = r["population"]
+        lines += ["", f"population K={p['k']} (member-steps/s, speed-up over sequential runs)"]
+        for name, c in p["by_controller"].items():
+            lines.append(f"{name:<26}{c['steps_per_s']:>10.0f}{c['speedup']:>13.2f}x")
+    if "estimate" in r:
+        e = r["estimate"]
+        lines += [
+            "",
+            f"paper sweep (3 envs x 4 controllers x {PAPER_SEEDS} seeds x {PAPER_EPISODES} "
+            f"episodes, width {r['width']}) on {e['workers']} workers:",
+        ]
+        header = f"{'steps/s':<14}" + "".join(f"{c:>10}" for c in PAPER_CONTROLLERS)
+        lines.append(header)
+        for env, row in e["steps_per_s"].items():
+            lines.append(f"{env:<14}" + "".join(f"{row[c]:>10.0f}" for c in PAPER_CONTROLLERS))
+        lengths = ", ".join(f"{k} {v}" for k, v in e["episode_length"].items())
+        lines += [
+            f"run overhead (open + close a run): {e['run_overhead_s']:.2f} s",
+            f"assumed mean episode length: {lengths} -> {e['expected_env_steps'] / 1e6:.0f} M "
+            "env steps",
+            f"estimated wall time: {e['expected_hours']:.1f} h "
+            f"(every episode at its cap: {e['upper_bound_hours']:.1f} h)",
+        ]
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -1,0 +1,212 @@
+"""Checkpoints: what a run needs to continue bit for bit from an episode boundary.
+
+A checkpoint is stored as artifacts of the run itself, so any machine that reaches the
+tracking store can resume it (``python -m cdqn.train resume=<run_id>``)::
+
+    checkpoint/slot-a/state.pt                  two slots, written in turn: a checkpoint cut
+    checkpoint/slot-b/state.pt                  short by a hard kill never spoils the other
+    checkpoint/signals/rows-<start>-<stop>.npy  per-step signals, each chunk written once
+
+``state.pt`` (``torch.save``, read back with ``weights_only=True``) holds the episode counter,
+the returns so far, the total step count, the number of signal rows, the agent's
+``state_dict()`` (network, exploration ε, controller state x_e and x_c; for Double DQN the
+target network, step counter and replay buffer), the optimizer state and the RNG states: the
+run's NumPy generator, torch's generator and the environment's ``np_random``.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from mlflow.tracking import MlflowClient
+
+from cdqn.agents.base import Agent
+from cdqn.signals import COLUMNS, SignalBuffer
+from cdqn.trainer import TrainState
+
+log = logging.getLogger("cdqn")
+
+FORMAT = 1
+ROOT = "checkpoint"
+SLOTS = ("a", "b")
+_CHUNK = re.compile(r"rows-(\d+)-(\d+)\.npy$")
+
+
+@dataclass
+class Checkpoint:
+    """The state of a run at an episode boundary (see the module docstring)."""
+
+    episode: int
+    """Episodes completed; training continues with this episode index."""
+    returns: list[float]
+    total_steps: int
+    signal_rows: int
+    """Rows of the signal table at the boundary (0 when signals are not stored)."""
+    agent: dict[str, Any]
+    optimizer: dict[str, Any] | None
+    numpy_rng: dict[str, Any]
+    torch_rng: torch.Tensor
+    env_rng: dict[str, Any]
+    signals: np.ndarray | None = None
+    """The signal rows, filled in by :meth:`CheckpointStore.load`."""
+
+
+def capture(
+    agent: Agent,
+    env: gym.Env,
+    state: TrainState,
+    rng: np.random.Generator,
+    signal_rows: int,
+) -> Checkpoint:
+    """Snapshot of a run at an episode boundary (between two episodes, never inside one)."""
+    optimizer = getattr(agent, "optimizer", None)
+    return Checkpoint(
+        episode=state.episode,
+        returns=[float(r) for r in state.returns],
+        total_steps=state.total_steps,
+        signal_rows=signal_rows,
+        agent=agent.state_dict(),
+        optimizer=optimizer.state_dict() if optimizer is not None else None,
+        numpy_rng=rng.bit_generator.state,
+        torch_rng=torch.get_rng_state(),
+        env_rng=env.unwrapped.np_random.bit_generator.state,
+    )
+
+
+def restore(
+    ckpt: Checkpoint,
+    agent: Agent,
+    env: gym.Env,
+    state: TrainState,
+    rng: np.random.Generator,
+    signals: SignalBuffer,
+) -> None:
+    """Put a freshly built run (same config, same seed) into the state of ``ckpt``."""
+    agent.load_state_dict(ckpt.agent)
+    optimizer = getattr(agent, "optimizer", None)
+    if optimizer is not None and ckpt.optimizer is not None:
+        optimizer.load_state_dict(ckpt.optimizer)
+    rng.bit_generator.state = ckpt.numpy_rng
+    torch.set_rng_state(ckpt.torch_rng)
+    bit_generator = getattr(np.random, ckpt.env_rng["bit_generator"])()
+    bit_generator.state = ckpt.env_rng
+    env.unwrapped.np_random = np.random.Generator(bit_generator)
+    state.episode = ckpt.episode
+    state.returns = list(ckpt.returns)
+    state.total_steps = ckpt.total_steps
+    if ckpt.signals is not None:
+        signals.load(ckpt.signals)
+
+
+class CheckpointStore:
+    """Writes and reads the checkpoints of one MLflow run."""
+
+    def __init__(self, client: MlflowClient, run_id: str, store_signals: bool = True) -> None:
+        self.client = client
+        self.run_id = run_id
+        self.store_signals = store_signals
+        self._next_slot = 0
+        self._rows_saved = 0
+
+    def save(self, ckpt: Checkpoint, signals: SignalBuffer) -> None:
+        """Write the signal rows not yet stored, then the state into the older slot."""
+        with tempfile.TemporaryDirectory() as tmp:
+            if self.store_signals and ckpt.signal_rows > self._rows_saved:
+                start, stop = self._rows_saved, ckpt.signal_rows
+                chunk = Path(tmp) / f"rows-{start:010d}-{stop:010d}.npy"
+                np.save(chunk, signals.rows(start, stop))
+                self.client.log_artifact(self.run_id, str(chunk), f"{ROOT}/signals")
+                self._rows_saved = stop
+            path = Path(tmp) / "state.pt"
+            torch.save(_encode(_fields(ckpt)), path)
+            slot = SLOTS[self._next_slot]
+            self.client.log_artifact(self.run_id, str(path), f"{ROOT}/slot-{slot}")
+        self._next_slot = 1 - self._next_slot
+        log.info("checkpoint at episode %d (slot %s)", ckpt.episode, slot)
+
+    def load(self) -> Checkpoint | None:
+        """The latest complete checkpoint of the run, or None when it has none."""
+        candidates: list[tuple[Checkpoint, int]] = []
+        with tempfile.TemporaryDirectory() as tmp:
+            for i, slot in enumerate(SLOTS):
+                try:
+                    local = self.client.download_artifacts(
+                        self.run_id, f"{ROOT}/slot-{slot}/state.pt", tmp
+                    )
+                    data = _decode(torch.load(local, weights_only=True))
+                    if data.get("format") != FORMAT:
+                        raise ValueError(f"format {data.get('format')}, expected {FORMAT}")
+                    del data["format"]
+                    candidates.append((Checkpoint(**data), i))
+                except Exception as err:  # missing slot or a write cut short by a hard kill
+                    log.debug("checkpoint slot %s unusable: %s", slot, err)
+            for ckpt, i in sorted(candidates, key=lambda c: -c[0].episode):
+                try:
+                    if self.store_signals and ckpt.signal_rows > 0:
+                        ckpt.signals = self._load_signals(ckpt.signal_rows, Path(tmp))
+                    else:
+                        ckpt.signal_rows = 0
+                except Exception as err:
+                    log.warning("checkpoint at episode %d unusable: %s", ckpt.episode, err)
+                    continue
+                self._next_slot = 1 - i
+                self._rows_saved = ckpt.signal_rows
+                return ckpt
+        return None
+
+    def _load_signals(self, rows: int, tmp: Path) -> np.ndarray:
+        """Rows ``[0, rows)`` from the chunks (a chain of chunks ending exactly at ``rows``)."""
+        chunks: dict[int, list[tuple[int, str]]] = {}
+        for info in self.client.list_artifacts(self.run_id, f"{ROOT}/signals"):
+            m = _CHUNK.search(info.path)
+            if m:
+                chunks.setdefault(int(m[1]), []).append((int(m[2]), info.path))
+        parts, pos = [], 0
+        while pos < rows:
+            options = [c for c in chunks.get(pos, []) if c[0] <= rows]
+            if not options:
+                raise ValueError(f"signal rows from {pos} missing in {ROOT}/signals")
+            stop, path = max(options)
+            part = np.load(self.client.download_artifacts(self.run_id, path, str(tmp)))
+            if part.shape != (stop - pos, len(COLUMNS)):
+                raise ValueError(f"{path}: shape {part.shape}, expected {stop - pos} rows")
+            parts.append(part)
+            pos = stop
+        return np.concatenate(parts)
+
+
+def _fields(ckpt: Checkpoint) -> dict[str, Any]:
+    data = {k: v for k, v in vars(ckpt).items() if k != "signals"}
+    data["format"] = FORMAT
+    return data
+
+
+def _encode(obj: Any) -> Any:
+    """NumPy arrays and scalars -> torch tensors and Python numbers (``weights_only`` safe)."""
+    if isinstance(obj, np.ndarray):
+        return {"__ndarray__": torch.from_numpy(np.array(obj))}
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, dict):
+        return {k: _encode(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return type(obj)(_encode(v) for v in obj)
+    return obj
+
+
+def _decode(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        if set(obj) == {"__ndarray__"}:
+            return obj["__ndarray__"].numpy()
+        return {k: _decode(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return type(obj)(_decode(v) for v in obj)
+    return obj

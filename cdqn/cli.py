@@ -1,0 +1,254 @@
+"""Command-line checks that run before Hydra starts a job.
+
+``python -m cdqn.train`` and ``python -m cdqn.evaluate`` call :func:`preflight` on their
+arguments first.  It composes the configuration exactly as Hydra will (for a multirun:
+every swept value once), applies the schema's validation and reports every problem in one
+message that names the key, the value and what is allowed, then exits with status 2::
+
+    cdqn: invalid configuration, nothing was started:
+      - controller=foo: unknown controller; allowed: ddqn, h2, hinf, hinf_f, none
+      - network.width=abc: Value 'abc' of type 'str' could not be converted to Integer
+        (network.width takes int)
+
+Flags that change what Hydra does (``--cfg``, ``--help``, ``--config-dir``, ...) skip the
+check and leave everything to Hydra.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import re
+import sys
+import typing
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from hydra import compose, initialize_config_dir
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.core.override_parser.types import Override, ValueType
+from hydra.errors import HydraException, MissingConfigException, OverrideParseException
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import (
+    ConfigAttributeError,
+    ConfigKeyError,
+    MissingMandatoryValue,
+    OmegaConfBaseException,
+    ValidationError,
+)
+
+from cdqn.config import (
+    Config,
+    ConfigError,
+    EnvConfig,
+    EvaluateConfig,
+    register_configs,
+    validate,
+    validate_evaluate,
+)
+
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+EXIT_CONFIG = 2
+"""Exit status of a command refused for its configuration."""
+MAX_COMPOSITIONS = 64
+"""A multirun is checked with at most this many compositions (each swept value once)."""
+
+_HYDRA_ONLY_FLAGS = {
+    "-h", "--help", "--hydra-help", "-i", "--info", "--version", "-c", "--cfg", "--resolve",
+    "-p", "--package", "-sc", "--shell-completion", "-cp", "--config-path", "-cn",
+    "--config-name", "-cd", "--config-dir", "--experimental-rerun",
+}  # fmt: skip
+_RESUME_ALLOWED = re.compile(r"^(resume|tracking|tracking\.\w+|train\.progress|hydra[./].*)$")
+
+register_configs()
+
+
+def check_train(cfg: DictConfig) -> None:
+    """What ``python -m cdqn.train`` refuses: the schema's rules and the environment."""
+    if cfg.get("resume"):
+        return  # the stored configuration is checked when the run is resumed
+    conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
+    validate(conf)
+    env = conf.env
+    _check_env(env.id, env.max_episode_steps, tuple(env.obs_indices or ()) or None)
+
+
+@functools.lru_cache(maxsize=32)
+def _check_env(env_id: str, max_steps: int | None, obs_indices: tuple[int, ...] | None) -> None:
+    from cdqn.envs import make_env  # noqa: PLC0415 (gymnasium only once the rest passed)
+
+    indices = list(obs_indices) if obs_indices is not None else None
+    make_env(EnvConfig(id=env_id, max_episode_steps=max_steps, obs_indices=indices)).close()
+
+
+def check_evaluate(cfg: DictConfig) -> None:
+    """What ``python -m cdqn.evaluate`` refuses."""
+    validate_evaluate(OmegaConf.to_object(cfg))  # type: ignore[arg-type]
+
+
+def preflight(
+    argv: list[str],
+    config_name: str = "config",
+    check: Callable[[DictConfig], None] = check_train,
+) -> None:
+    """Exit with status 2 and a clear message when ``argv`` cannot run (module docstring)."""
+    if any(a.split("=", 1)[0] in _HYDRA_ONLY_FLAGS for a in argv):
+        return
+    multirun = any(a in ("-m", "--multirun") for a in argv)
+    overrides = [a for a in argv if not a.startswith("-")]
+    errors = check_overrides(overrides, multirun, config_name, check)
+    if errors:
+        lines = "\n".join(f"  - {e}" for e in errors)
+        print(f"cdqn: invalid configuration, nothing was started:\n{lines}", file=sys.stderr)
+        sys.exit(EXIT_CONFIG)
+
+
+def check_overrides(
+    overrides: list[str],
+    multirun: bool = False,
+    config_name: str = "config",
+    check: Callable[[DictConfig], None] = check_train,
+) -> list[str]:
+    """The problems of a command line, one message each (empty: it can run)."""
+    parser = OverridesParser.create()
+    parsed: list[Override] = []
+    for text in overrides:
+        try:
+            parsed.extend(parser.parse_overrides([text]))
+        except OverrideParseException as err:
+            first = str(err).splitlines()[0]
+            return [f"{text}: cannot parse ({first}); see Hydra's override grammar"]
+    errors = _group_errors(parsed)
+    if config_name == "config" and any(o.key_or_group == "resume" for o in parsed):
+        errors += resume_conflicts(overrides)
+    if errors:
+        return errors
+    jobs = _jobs(parsed, overrides, multirun)
+    if jobs is None:
+        return []  # sweeps Hydra expands itself (glob, interval): Hydra checks them
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        for job in jobs[:MAX_COMPOSITIONS]:
+            for msg in _check_one(job, config_name, check):
+                if msg not in errors:
+                    errors.append(msg)
+    return errors
+
+
+def resume_conflicts(overrides: list[str]) -> list[str]:
+    """Overrides that make no sense with ``resume=<run_id>`` (it continues the stored config)."""
+    bad = [o for o in overrides if not _RESUME_ALLOWED.match(o.split("=", 1)[0].lstrip("+~"))]
+    if not bad:
+        return []
+    return [
+        f"{' '.join(bad)}: resume=<run_id> continues the run with its stored configuration; "
+        "allowed alongside it: tracking.*, train.progress (start a new run to change anything "
+        "else)"
+    ]
+
+
+def _group_errors(parsed: list[Override]) -> list[str]:
+    groups = {d.name for d in CONF_DIR.iterdir() if d.is_dir()}
+    errors = []
+    for ov in parsed:
+        group = ov.key_or_group
+        if group not in groups or ov.is_delete() or ov.package is not None:
+            continue
+        options = sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
+        for value in _values(ov) or []:
+            if value not in options:
+                errors.append(f"{group}={value}: unknown {group}; allowed: {', '.join(options)}")
+    return errors
+
+
+def _values(ov: Override) -> list[str] | None:
+    """The values of an override (several for a sweep), None when Hydra must expand them."""
+    if not ov.is_sweep_override():
+        return [ov.get_value_element_as_str()]
+    if ov.value_type == ValueType.GLOB_CHOICE_SWEEP or not ov.is_discrete_sweep():
+        return None
+    return list(ov.sweep_string_iterator())
+
+
+def _jobs(parsed: list[Override], texts: list[str], multirun: bool) -> list[list[str]] | None:
+    """Override lists to compose: the first value of every sweep, then each other value once."""
+    base: list[str] = []
+    variants: list[tuple[int, list[str]]] = []
+    for ov, text in zip(parsed, texts, strict=True):
+        if ov.is_hydra_override():
+            continue
+        if not (multirun and ov.is_sweep_override()):
+            base.append(text)
+            continue
+        values = _values(ov)
+        if not values:
+            return None
+        key = ov.get_key_element()
+        base.append(f"{key}={values[0]}")
+        variants.append((len(base) - 1, [f"{key}={v}" for v in values[1:]]))
+    jobs = [base]
+    for i, alternatives in variants:
+        jobs += [[*base[:i], alt, *base[i + 1 :]] for alt in alternatives]
+    return jobs
+
+
+def _check_one(
+    overrides: list[str], config_name: str, check: Callable[[DictConfig], None]
+) -> list[str]:
+    schema = EvaluateConfig if config_name == "evaluate" else Config
+    try:
+        check(compose(config_name, overrides=overrides))
+    except ConfigError as err:
+        items = [ln.strip()[2:] for ln in str(err).splitlines() if ln.strip().startswith("- ")]
+        return items or [str(err)]
+    except (HydraException, OmegaConfBaseException) as err:
+        return [explain(err, schema)]
+    return []
+
+
+def explain(err: Exception, schema: type = Config) -> str:
+    """One line for a Hydra/OmegaConf composition error: key, value and what is allowed."""
+    cause = err.__cause__ if isinstance(err.__cause__, OmegaConfBaseException) else err
+    full_key = getattr(cause, "full_key", None) or ""
+    key = re.sub(r"\[\d+\]$", "", full_key)
+    merging = re.search(r"Error merging override (\S+)", str(err))
+    if isinstance(cause, ConfigAttributeError | ConfigKeyError) and full_key:
+        parent, _, _ = key.rpartition(".")
+        names = _field_names(schema, parent)
+        where = f" in {parent}" if parent else ""
+        return f"{key}: no such setting{where}; allowed: {', '.join(names)}"
+    if isinstance(cause, ValidationError) and full_key:
+        text = merging[1] if merging else f"{key}={cause.value!r}"
+        expected = _field_type(schema, key)
+        msg = (cause.msg or str(cause)).splitlines()[0]
+        return f"{text}: {msg}" + (f" ({key} takes {expected})" if expected else "")
+    if isinstance(cause, MissingMandatoryValue) and full_key:
+        return f"{key}: required, give {key}=<value>"
+    if isinstance(err, MissingConfigException):
+        return " ".join(str(err).split("Config search path")[0].split())
+    return " ".join(str(err).split("Config search path")[0].split())
+
+
+def _walk(schema: type, dotted: str) -> type | None:
+    cls: Any = schema
+    for part in [p for p in dotted.split(".") if p]:
+        if not dataclasses.is_dataclass(cls):
+            return None
+        cls = typing.get_type_hints(cls).get(part)
+    return cls
+
+
+def _field_names(schema: type, parent: str) -> list[str]:
+    cls = _walk(schema, parent)
+    return [f.name for f in dataclasses.fields(cls)] if dataclasses.is_dataclass(cls) else []
+
+
+def _field_type(schema: type, key: str) -> str | None:
+    parent, _, leaf = key.rpartition(".")
+    cls = _walk(schema, parent)
+    if not dataclasses.is_dataclass(cls):
+        return None
+    for f in dataclasses.fields(cls):
+        if f.name == leaf:
+            return f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))
+    return None

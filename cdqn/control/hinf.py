@@ -1,0 +1,367 @@
+"""Dynamic H∞ controller: the Δ-P-K generalized plant, γ-bisection around SLICOT's
+fixed-γ H∞ routine, balanced reduction (paper Sec. 4.2).
+
+Generalized plant (all blocks SISO unless marked; ``Q = [Q1, Q2]`` the learning plant's
+states, ``G`` the learning plant of :func:`cdqn.control.plant.io_plant`)::
+
+             d (2) ──► W_Δ ─────────────┐                              z_d = Q   (to Δ)
+             n (2) ──► W_n ───────────┐ │                              z_n = Q   (to Δ_n)
+      r ──► W_r ── r_w ─┬─────────────│─│──────────┐
+                        │   ┌──────┐  ▼ ▼          │
+      u ───────────────┬│──►│  G   ├──Q──(+)── Q̃ ──│───────────┬─────► y2,3 = Q̃
+                       ││   └──────┘     ▲         │           │
+       w_q (ε_q) ──────││───process noise┘         ▼           │
+                       ││         Q̂2 ──► γW_Q̂ ──► (+) ◄── −Q̃1 ┘
+                       ││                           │ e
+                       ││              ┌────────────┼──────────┐
+                       ││              ▼                       │
+                       ││        1/(s+ε_i) ── x_i ──► W_p ──► z_p
+                       ││              │                       │
+                       ││   w_s (ε_s) ─(+)──────────────────────┴──► y1 ≈ x_e = ∫e
+                       │└──► W_u ──► z_u,  ε_u ──► z_ε
+                       └──── u = K(s) [y1, y2, y3]
+
+with ``Q̃ = Q + W_Δ d + W_n n`` (output-multiplicative uncertainty and measurement noise),
+``z_p = W_p x_i`` on the integrated error ``x_i`` (``track_integral=False``: ``W_p e`` as the
+paper writes it; with the paper's small ``W_p`` on ``e`` no integral action results),
+``e = W_r r + γ W_Q̂ Q̂2 − Q̃1`` the tracking error (paper Sec. 4.2, the interconnection of
+the paper's Fig. hinfsyn_DPK with the integrated error as first measurement), and
+
+.. math::  \\min_K \\gamma \\quad\\text{s.t.}\\quad
+           \\|\\mathcal F_l(\\mathcal P, K)\\|_\\infty < \\gamma .
+
+The controller's inputs are ``[x_e, Q1, Q2]`` and its output is ``u`` in cdqn's
+convention ``Q̇1 = Θ1 (r + γQ̂2 − Q1 + u)``; SLICOT closes ``u = +K y``, the same sign.
+
+Regularisation (each needed by SB10AD's assumptions A1–A4; sizes from
+:class:`cdqn.config.SynthesisConfig`):
+
+* ``ε_i``: the integrator ``1/s`` becomes ``1/(s+ε_i)`` (A3: a pure integrator on a state
+  that ``z`` does not see is an invariant zero on the imaginary axis).
+* ``ε_u``: a performance output ``ε_u·u`` (A2: ``W_u`` is strictly proper, so ``D12 = 0``
+  without it).
+* ``ε_s``: sensor noise ``ε_s·w_s`` on the integrated error (A2: ``D21`` full row rank).
+* ``ε_q``: process noise ``ε_q·w_q`` into both Q states (A4: with γ = 1 the plant's mode at
+  s = 0 has left eigenvector ``[Θ2, −Θ1]``, orthogonal to the reward input ``[Θ1, Θ2]``,
+  so it is unreachable from every exogenous input).
+
+``D11 = 0`` by construction: SB10AD refuses problems (INFO=6) when ``D11`` couples inputs
+that also feed the measurements.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import slycot
+
+from cdqn.control.errors import DesignError
+from cdqn.control.plant import DEFAULT_PLANT, minimal_io_plant
+from cdqn.control.weights import SisoWeight
+
+EXOGENOUS = ("d1", "d2", "n1", "n2", "r", "qhat", "w_s", "w_q1", "w_q2")
+"""Exogenous inputs of the generalized plant, in order."""
+PERFORMANCE = ("z_d1", "z_d2", "z_n1", "z_n2", "z_p", "z_u", "z_eps")
+"""Performance outputs of the generalized plant, in order."""
+MEASUREMENTS = ("x_e", "Q1", "Q2")
+"""Measurements (controller inputs), in order."""
+
+
+@dataclass(frozen=True)
+class Regularisation:
+    """Sizes of the regularisations of the generalized plant (module docstring)."""
+
+    integrator: float = 1e-3
+    """ε_i, integrator 1/s → 1/(s+ε_i), rad/s."""
+    control: float = 1e-2
+    """ε_u, extra performance output ε_u·u."""
+    sensor: float = 1e-4
+    """ε_s, sensor noise on the integrated error."""
+    process: float = 1e-2
+    """ε_q, process noise into the Q states."""
+
+
+@dataclass(frozen=True)
+class HinfWeightSet:
+    """Weights of the dynamic design (paper Sec. 4.2)."""
+
+    w_p: SisoWeight
+    w_u: SisoWeight
+    w_r: SisoWeight
+    w_qhat: SisoWeight
+    w_cover: SisoWeight
+    """Output-multiplicative cover of the sampled plants, already scaled by W_Δ."""
+    w_noise: tuple[float, float]
+    """Relative measurement-noise levels on Q1, Q2."""
+
+
+@dataclass
+class StateSpaceMatrices:
+    """``ẋ = A x + B v``, ``y = C x + D v``."""
+
+    A: np.ndarray
+    B: np.ndarray
+    C: np.ndarray
+    D: np.ndarray
+
+    @property
+    def nstates(self) -> int:
+        return int(self.A.shape[0])
+
+
+@dataclass
+class GeneralizedPlant:
+    """``P`` with inputs ``[w; u]`` (``w`` = :data:`EXOGENOUS`) and outputs ``[z; y]``."""
+
+    sys: StateSpaceMatrices
+    n_exogenous: int
+    n_performance: int
+    n_measurements: int = 3
+    n_controls: int = 1
+
+
+@dataclass
+class HinfResult:
+    """A synthesised controller and its closed loop."""
+
+    controller: StateSpaceMatrices
+    """``K``: inputs [x_e, Q1, Q2], output u."""
+    gamma: float
+    """Achieved closed-loop H∞ norm bound γ of ``F_l(P, K)``."""
+    closed_loop: StateSpaceMatrices
+    """``F_l(P, K)`` from ``w`` to ``z``."""
+    iterations: int
+    """SB10AD calls made by the bisection."""
+
+
+def generalized_plant(
+    theta1: float,
+    theta2: float,
+    discount: float,
+    weights: HinfWeightSet,
+    reg: Regularisation,
+    track_integral: bool = True,
+    plant: str = DEFAULT_PLANT,
+) -> GeneralizedPlant:
+    """Assemble the generalized plant of the module docstring at nominal (Θ1, Θ2), with the
+    minimal realisation of the learning plant ``plant``
+    (:func:`cdqn.control.plant.minimal_io_plant`)."""
+    A_Q, B_Q, C_Q = minimal_io_plant(theta1, theta2, discount, plant)
+    n_q = A_Q.shape[0]
+    blocks = {
+        "r": weights.w_r.ss(),
+        "q": weights.w_qhat.ss(),
+        "c1": weights.w_cover.ss(),
+        "c2": weights.w_cover.ss(),
+        "p": weights.w_p.ss(),
+        "u": weights.w_u.ss(),
+    }
+    sizes = {"Q": n_q, "i": 1} | {k: v[0].shape[0] for k, v in blocks.items()}
+    idx: dict[str, slice] = {}
+    n = 0
+    for k, size in sizes.items():
+        idx[k] = slice(n, n + size)
+        n += size
+    nw = len(EXOGENOUS)
+    W = {name: i for i, name in enumerate(EXOGENOUS)}
+
+    def signal() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return np.zeros(n), np.zeros(nw), np.zeros(1)
+
+    def weight_out(key: str, inp: tuple[np.ndarray, np.ndarray, np.ndarray], k: float = 1.0):
+        a, b, c, d = blocks[key]
+        cx, dw, du = (d[0, 0] * v for v in inp)
+        cx = cx.copy()
+        cx[idx[key]] += c[0]
+        return k * cx, k * dw, k * du
+
+    def from_w(name: str):
+        cx, dw, du = signal()
+        dw[W[name]] = 1.0
+        return cx, dw, du
+
+    def from_u():
+        cx, dw, du = signal()
+        du[0] = 1.0
+        return cx, dw, du
+
+    def state(i: int):
+        cx, dw, du = signal()
+        cx[i] = 1.0
+        return cx, dw, du
+
+    def add(*terms):
+        out = signal()
+        for coef, t in terms:
+            out = tuple(o + coef * v for o, v in zip(out, t, strict=True))
+        return out
+
+    rw = weight_out("r", from_w("r"))
+    qw = weight_out("q", from_w("qhat"), discount)
+    dq = [weight_out("c1", from_w("d1")), weight_out("c2", from_w("d2"))]
+    q0 = idx["Q"].start
+    Q = [add(*((C_Q[j, k], state(q0 + k)) for k in range(n_q))) for j in range(2)]
+    qt = [
+        add((1.0, Q[j]), (1.0, dq[j]), (weights.w_noise[j], from_w(f"n{j + 1}"))) for j in range(2)
+    ]
+    e = add((1.0, rw), (1.0, qw), (-1.0, qt[0]))
+    u = from_u()
+    i0 = idx["i"].start
+    TRACK = [state(i0) if track_integral else e]
+
+    A = np.zeros((n, n))
+    B = np.zeros((n, nw + 1))
+
+    # learning plant: x_Q' = A_Q x_Q + B_u u + B_r r_w + ε_q C_Qᵀ w_q  (Q = C_Q x_Q)
+    A[q0 : q0 + n_q, q0 : q0 + n_q] = A_Q
+    for k in range(n_q):
+        row = q0 + k
+        noise = [(reg.process * C_Q[j, k], from_w(f"w_q{j + 1}")) for j in range(2)]
+        lin = add((B_Q[k, 0], u), (B_Q[k, 1], rw), *noise)
+        A[row] += lin[0]
+        B[row] += np.concatenate([lin[1], lin[2]])
+    # integrator of the tracking error
+    i0 = idx["i"].start
+    A[i0, i0] -= reg.integrator
+    A[i0] += e[0]
+    B[i0] += np.concatenate([e[1], e[2]])
+    # weight states
+    for key, inp in (
+        ("r", from_w("r")),
+        ("q", from_w("qhat")),
+        ("c1", from_w("d1")),
+        ("c2", from_w("d2")),
+        ("p", TRACK[0]),
+        ("u", u),
+    ):
+        a, b, _, _ = blocks[key]
+        sl = idx[key]
+        A[sl, sl] += a
+        A[sl] += np.outer(b[:, 0], inp[0])
+        B[sl] += np.outer(b[:, 0], np.concatenate([inp[1], inp[2]]))
+
+    outs = [
+        Q[0],
+        Q[1],
+        Q[0],
+        Q[1],
+        weight_out("p", TRACK[0]),
+        weight_out("u", u),
+        add((reg.control, u)),
+        add((1.0, state(i0)), (reg.sensor, from_w("w_s"))),
+        qt[0],
+        qt[1],
+    ]
+    C = np.vstack([o[0] for o in outs])
+    D = np.vstack([np.concatenate([o[1], o[2]]) for o in outs])
+    return GeneralizedPlant(StateSpaceMatrices(A, B, C, D), nw, len(PERFORMANCE))
+
+
+def _sb10ad(P: GeneralizedPlant, gamma: float):
+    s = P.sys
+    return slycot.sb10ad(
+        s.nstates,
+        P.n_exogenous + P.n_controls,
+        P.n_performance + P.n_measurements,
+        P.n_controls,
+        P.n_measurements,
+        gamma,
+        s.A,
+        s.B,
+        s.C,
+        s.D,
+        job=4,
+    )
+
+
+def hinf_bisection(
+    P: GeneralizedPlant, rel_tol: float = 1e-3, gamma_max: float = 1e8
+) -> HinfResult:
+    """Smallest γ (to ``rel_tol``) for which SB10AD's fixed-γ solution exists and its
+    closed loop is stable; bisection in log γ between a feasible and an infeasible value.
+
+    Raises :class:`DesignError` when no γ ≤ ``gamma_max`` is feasible.
+    """
+    calls = 0
+    last_error = ""
+
+    def attempt(g: float):
+        nonlocal calls, last_error
+        calls += 1
+        try:
+            out = _sb10ad(P, g)
+        except (slycot.exceptions.SlycotArithmeticError, ValueError) as err:
+            last_error = str(err).strip().splitlines()[0] if str(err).strip() else repr(err)
+            return None
+        Ac = out[5]
+        if Ac.size and np.max(np.linalg.eigvals(Ac).real) >= 0:
+            last_error = f"closed loop unstable at γ={g:.4g}"
+            return None
+        return out
+
+    hi, best = 1.0, None
+    while hi <= gamma_max:
+        best = attempt(hi)
+        if best is not None:
+            break
+        hi *= 10.0
+    if best is None:
+        raise DesignError(
+            f"H∞ synthesis failed: SB10AD found no stabilising controller for γ ≤ {gamma_max:g} "
+            f"(last: {last_error})"
+        )
+    lo = 0.0 if hi == 1.0 else hi / 10.0
+    if hi == 1.0:
+        # search downward for an infeasible lower end
+        lo = hi
+        while lo > 1e-6:
+            lo /= 10.0
+            out = attempt(lo)
+            if out is None:
+                break
+            hi, best = lo, out
+        else:
+            lo = 0.0
+    while hi - lo > rel_tol * hi:
+        mid = np.sqrt(lo * hi) if lo > 0 else hi / 2
+        out = attempt(mid)
+        if out is None:
+            lo = mid
+        else:
+            hi, best = mid, out
+    _, Ak, Bk, Ck, Dk, Ac, Bc, Cc, Dc, _ = best
+    return HinfResult(
+        StateSpaceMatrices(Ak, Bk, Ck, Dk),
+        float(hi),
+        StateSpaceMatrices(Ac, Bc, Cc, Dc),
+        calls,
+    )
+
+
+def lft_closed_loop(P: GeneralizedPlant, K: StateSpaceMatrices) -> StateSpaceMatrices:
+    """``F_l(P, K)`` for ``D22 = 0`` and ``u = K y`` (SLICOT's sign)."""
+    s = P.sys
+    nw, nz = P.n_exogenous, P.n_performance
+    B1, B2 = s.B[:, :nw], s.B[:, nw:]
+    C1, C2 = s.C[:nz], s.C[nz:]
+    D11, D12 = s.D[:nz, :nw], s.D[:nz, nw:]
+    D21 = s.D[nz:, :nw]
+    Ak, Bk, Ck, Dk = K.A, K.B, K.C, K.D
+    A = np.block([[s.A + B2 @ Dk @ C2, B2 @ Ck], [Bk @ C2, Ak]])
+    B = np.vstack([B1 + B2 @ Dk @ D21, Bk @ D21])
+    C = np.hstack([C1 + D12 @ Dk @ C2, D12 @ Ck])
+    D = D11 + D12 @ Dk @ D21
+    return StateSpaceMatrices(A, B, C, D)
+
+
+def sigma(sys: StateSpaceMatrices, omega: np.ndarray) -> np.ndarray:
+    """Singular values of ``C (jω − A)^{-1} B + D`` on ``omega``: shape (W, min(p, m))."""
+    n = sys.nstates
+    s = 1j * np.asarray(omega)[:, None, None]
+    X = np.linalg.solve(
+        s * np.eye(n) - sys.A[None],
+        np.broadcast_to(sys.B, (len(omega),) + sys.B.shape).astype(complex),
+    )
+    H = sys.C[None] @ X + sys.D[None]
+    return np.linalg.svd(H, compute_uv=False)

@@ -1,0 +1,159 @@
+"""Sweeps that can be restarted: configuration hashes, skipping finished runs, and a
+tracking store made ready once before parallel jobs start.
+
+Every run is tagged ``config_hash``: a hash of its resolved configuration without the keys
+that do not change what is learned (:data:`IGNORED_KEYS`: where it is recorded, progress
+display, checkpoint interval, population size), seed included.  With
+``tracking.skip_finished=true`` a job first asks the store for a FINISHED run with its hash
+and, if there is one, logs ``skipping …`` and trains nothing; a population skips the
+members that finished and trains the others.  An interrupted sweep started again therefore
+trains only what is missing.
+
+A fresh SQLite store is created by the first process that opens it; that migration is not
+safe when several joblib workers do it at the same moment.  :class:`PrepareStore` (a Hydra
+callback registered in ``conf/config.yaml``) creates the store and the experiment in the
+launching process before any job starts, and every job opens the store through
+:func:`ensure_store`, which does it under a file lock.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import logging
+import random
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+try:
+    import fcntl
+except ImportError:  # Windows: no advisory locks, PrepareStore still creates the store once
+    fcntl = None  # type: ignore[assignment]
+
+from hydra.experimental.callback import Callback
+from mlflow.entities import Run
+from mlflow.tracking import MlflowClient
+from omegaconf import DictConfig, OmegaConf
+
+log = logging.getLogger("cdqn")
+
+IGNORED_KEYS = (
+    "tracking",
+    "resume",
+    "train.progress",
+    "train.checkpoint_every",
+    "train.population",
+)
+"""Configuration keys left out of :func:`config_hash`."""
+
+
+def config_hash(cfg: DictConfig | dict[str, Any]) -> str:
+    """16 hex digits of SHA-256 over the resolved configuration minus :data:`IGNORED_KEYS`."""
+    tree = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else cfg
+    tree = json.loads(json.dumps(tree, default=str))  # a deep copy of plain values
+    tree.pop("hydra", None)
+    for key in IGNORED_KEYS:
+        *parents, leaf = key.split(".")
+        node = tree
+        for part in parents:
+            node = node.get(part, {}) if isinstance(node, dict) else {}
+        if isinstance(node, dict):
+            node.pop(leaf, None)
+    text = json.dumps(tree, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def find_finished(client: MlflowClient, experiment: str, chash: str) -> Run | None:
+    """The most recent FINISHED run tagged ``config_hash = chash``, if any."""
+    exp = client.get_experiment_by_name(experiment)
+    if exp is None:
+        return None
+    runs = client.search_runs(
+        [exp.experiment_id],
+        filter_string=f"tags.config_hash = '{chash}' and attributes.status = 'FINISHED'",
+        max_results=1,
+        order_by=["attributes.start_time DESC"],
+    )
+    return runs[0] if runs else None
+
+
+def final_score(client: MlflowClient, run: Run) -> float:
+    """Last logged ``return_ma100`` of ``run`` (NaN when it has none)."""
+    history = client.get_metric_history(run.info.run_id, "return_ma100")
+    return max(history, key=lambda m: m.step).value if history else float("nan")
+
+
+def ensure_store(uri: str, experiment: str, attempts: int = 5) -> None:
+    """Create (and migrate) the store at ``uri`` and the experiment.
+
+    For a SQLite store this happens under an exclusive lock on ``<database>.lock``: a fresh
+    store's first migration, run by several processes at once, fails and leaves the
+    database unusable (a half-finished ``_alembic_tmp_*`` table).  Other errors are retried.
+    """
+    for attempt in range(attempts):
+        try:
+            with _store_lock(uri):
+                client = MlflowClient(uri)
+                if client.get_experiment_by_name(experiment) is None:
+                    client.create_experiment(experiment)
+            return
+        except Exception as err:
+            if attempt == attempts - 1:
+                raise
+            delay = 0.2 * 2**attempt * (1 + random.random())
+            log.warning("tracking store %s not ready (%s); retrying in %.1f s", uri, err, delay)
+            time.sleep(delay)
+
+
+@contextlib.contextmanager
+def _store_lock(uri: str) -> Iterator[None]:
+    """Exclusive lock on ``<database>.lock`` for ``sqlite:///`` URIs (POSIX); else nothing."""
+    if not uri.startswith("sqlite:///") or fcntl is None:
+        yield
+        return
+    path = Path(uri[len("sqlite:///") :] + ".lock")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+class PrepareStore(Callback):
+    """Hydra callback: make the tracking store and experiment ready before a multirun's jobs
+    start (module docstring)."""
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        from cdqn.train import resolve_tracking_uri  # noqa: PLC0415 (train imports this module)
+
+        try:
+            uri = resolve_tracking_uri(str(config.tracking.uri))
+            experiment = str(config.tracking.experiment)
+        except Exception as err:  # an unresolvable interpolation: each job will report it
+            log.warning("could not prepare the tracking store: %s", err)
+            return
+        if uri.startswith("sqlite:///"):
+            ensure_store(uri, experiment)
+
+
+def finished_elsewhere(cfg: DictConfig, uri: str) -> tuple[str, float] | None:
+    """``(run_id, final score)`` of a FINISHED run with ``cfg``'s hash in the store at
+    ``uri``, logging ``skipping …``; None when this configuration and seed must be trained."""
+    client = MlflowClient(uri)
+    run = find_finished(client, str(cfg.tracking.experiment), config_hash(cfg))
+    if run is None:
+        return None
+    log.info(
+        "skipping %s/%s seed %s: run %s already FINISHED with this configuration (config_hash %s)",
+        cfg.env.name,
+        cfg.controller.name,
+        cfg.seed,
+        run.info.run_id,
+        run.data.tags.get("config_hash"),
+    )
+    return run.info.run_id, final_score(client, run)

@@ -1,0 +1,339 @@
+"""The analysis package on a small store of real training runs.
+
+One module-scoped store: short real runs of a few controllers on CartPole and MountainCar
+(distinct seeds per controller so that the cells differ), one run that diverges (FAILED), and
+a closed-loop singular-value file added to one run as a synthesized design would store it.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from mlflow.tracking import MlflowClient
+
+from analysis import make_figures, make_table
+from analysis.runs import EPISODE_METRICS, RunStore, comparable_runs
+from analysis.table import run_scores
+from tests.conftest import TINY, compose_config
+
+EXPERIMENT = "analysis-test"
+RUNS = [
+    # (env, controller, seed, episodes)
+    ("cartpole", "hinf", 0, 6),
+    ("cartpole", "hinf", 1, 6),
+    ("cartpole", "hinf_f", 2, 6),
+    ("cartpole", "hinf_f", 3, 6),
+    ("cartpole", "ddqn", 4, 6),
+    ("cartpole", "ddqn", 5, 6),
+    ("cartpole", "none", 6, 6),
+    ("mountaincar", "hinf", 0, 3),
+    ("mountaincar", "hinf", 1, 3),
+    ("mountaincar", "hinf_f", 2, 3),
+]
+N_FINISHED = len(RUNS)
+
+
+@pytest.fixture(scope="module")
+def store_uri(tmp_path_factory: pytest.TempPathFactory) -> str:
+    from cdqn.train import run
+
+    root = tmp_path_factory.mktemp("store")
+    uri = f"sqlite:///{root / 'mlflow.db'}"
+    common = [*TINY, f"tracking.uri={uri}", f"tracking.experiment={EXPERIMENT}"]
+    ids = {}
+    for env, ctrl, seed, episodes in RUNS:
+        cfg = compose_config(
+            [
+                *common,
+                f"env={env}",
+                f"controller={ctrl}",
+                f"seed={seed}",
+                f"train.episodes={episodes}",
+            ]
+        )
+        ids[(env, ctrl, seed)] = run(cfg, progress=False).run_id
+    failed = run(
+        compose_config([*common, "controller=none", "seed=7", "train.q_limit=1e-9"]),
+        progress=False,
+    )
+    assert failed.status == "FAILED"
+    omega = np.logspace(-2, 5, 50)
+    sv = root / "closed_loop_sv.csv"
+    pd.DataFrame(
+        {"omega": omega, "sigma_max": 1 / (1 + omega), "sigma_min": 0.1 / (1 + omega)}
+    ).to_csv(sv, index=False)
+    MlflowClient(uri).log_artifact(ids[("cartpole", "hinf", 0)], str(sv), "design")
+    return uri
+
+
+def _history(client: MlflowClient, run_id: str, key: str) -> np.ndarray:
+    hist = sorted(client.get_metric_history(run_id, key), key=lambda m: m.step)
+    return np.array([m.value for m in hist])
+
+
+def _direct_scores(uri: str, threshold: dict[str, float] | None = None) -> pd.DataFrame:
+    """The table's numbers computed straight from the MLflow client, run by run."""
+    client = MlflowClient(uri)
+    exp = client.get_experiment_by_name(EXPERIMENT)
+    rows = []
+    for r in client.search_runs([exp.experiment_id]):
+        if r.info.status != "FINISHED":
+            continue
+        env = r.data.tags["env"]
+        returns = _history(client, r.info.run_id, "episode_return")
+        ma = _history(client, r.info.run_id, "return_ma100")
+        thr = (threshold or {}).get(env, float(r.data.params["env.solve_threshold"]))
+        hit = np.flatnonzero(ma >= thr)
+        rows.append(
+            {
+                "controller": r.data.tags["controller"],
+                "env": env,
+                "final": returns[-100:].mean(),
+                "solve": hit[0] + 1 if hit.size else np.inf,
+            }
+        )
+    df = pd.DataFrame(rows)
+    out = df.groupby(["controller", "env"]).agg(
+        n=("final", "size"),
+        mean=("final", "mean"),
+        std=("final", lambda x: np.std(x.to_numpy())),
+        solved=("solve", lambda x: int(np.isfinite(x).sum())),
+        median=("solve", lambda x: np.median(x.to_numpy())),
+    )
+    return out
+
+
+def _markdown_cells(text: str) -> dict[tuple[str, str], str]:
+    lines = [ln for ln in text.splitlines() if ln.startswith("|")]
+    header = [c.strip() for c in lines[0].strip("|").split("|")]
+    cells = {}
+    for line in lines[2:]:
+        parts = [c.strip() for c in line.strip("|").split("|")]
+        for env, cell in zip(header[1:], parts[1:], strict=True):
+            cells[(parts[0], env)] = cell
+    return cells
+
+
+def test_runs_load_finished_only_with_tags_and_metrics(store_uri: str) -> None:
+    store = RunStore(store_uri, EXPERIMENT)
+    runs = store.runs()
+    assert len(runs) == N_FINISHED
+    assert set(runs["status"]) == {"FINISHED"}
+    assert len(store.runs(["FINISHED", "FAILED"])) == N_FINISHED + 1
+    assert {"env", "controller", "seed", "git_commit", "design_source"} <= set(runs.columns)
+    assert runs["solve_threshold"].notna().all()
+
+    episodes = store.episodes()
+    assert list(episodes.columns[-len(EPISODE_METRICS) :]) == list(EPISODE_METRICS)
+    assert len(episodes) == sum(n for *_, n in RUNS)
+    one = runs.iloc[0]
+    mine = episodes[episodes["run_id"] == one["run_id"]].sort_values("episode")
+    direct = _history(MlflowClient(store_uri), one["run_id"], "return_ma100")
+    np.testing.assert_array_equal(mine["return_ma100"].to_numpy(), direct)
+
+    steps = store.steps(one["run_id"])
+    assert steps is not None and len(steps) == mine["episode_length"].sum()
+    assert store.closed_loop_sv(one["run_id"]) is None or one["controller"] == "hinf"
+
+
+def test_database_query_equals_client_api(store_uri: str) -> None:
+    store = RunStore(store_uri, EXPERIMENT)
+    ids = list(store.runs()["run_id"])
+    keys = list(EPISODE_METRICS)
+    fast = store._metrics_sql(ids, keys)
+    assert fast is not None and len(fast) > 0
+    pd.testing.assert_frame_equal(fast, store._metrics_client(ids, keys), check_dtype=False)
+
+
+def test_comparable_runs_keep_latest_run_per_seed(store_uri: str) -> None:
+    runs = RunStore(store_uri, EXPERIMENT).runs()
+    again = runs.iloc[[0]].assign(run_id="rerun", start_time=runs["start_time"].max() + 1)
+    again["params.network.width"] = "64"
+    kept, notes = comparable_runs(pd.concat([runs, again], ignore_index=True))
+    assert len(kept) == len(runs)
+    assert "rerun" in set(kept["run_id"]) and runs.iloc[0]["run_id"] not in set(kept["run_id"])
+    env, ctrl, seed = runs.iloc[0][["env", "controller", "seed"]]
+    assert f"{env}/{ctrl} seed {seed}: 2 runs, only the latest one counts" in notes
+    assert any(f"{env}/{ctrl}: runs differ in network.width" in n for n in notes)
+
+
+def test_table_equals_direct_computation_and_bolds_best(
+    store_uri: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "tables"
+    code = make_table.main(
+        [
+            "--tracking-uri",
+            store_uri,
+            "--experiment",
+            EXPERIMENT,
+            "--out",
+            str(out),
+            "--compare-paper",
+        ]
+    )
+    assert code == 0
+    printed = capsys.readouterr()
+    summary = pd.read_csv(out / "result_summary.csv").set_index(["controller", "env"])
+    direct = _direct_scores(store_uri)
+    assert sorted(summary.index) == sorted(direct.index)
+    for key, row in direct.iterrows():
+        got = summary.loc[key]
+        assert got["n_seeds"] == row["n"]
+        assert got["mean"] == pytest.approx(row["mean"], abs=1e-9)
+        assert got["std"] == pytest.approx(row["std"], abs=1e-9)
+
+    cells = _markdown_cells(printed.out)
+    labels = {
+        "hinf": "H∞ dynamic",
+        "hinf_f": "H∞ fixed-structure",
+        "ddqn": "DDQN",
+        "none": "no control",
+    }
+    envs = {"cartpole": "Cartpole", "mountaincar": "Mountain car"}
+    unique_best = 0
+    for env, df in direct.groupby(level="env"):
+        best = df["mean"].max()
+        unique_best += int((df["mean"] == best).sum() == 1)
+        for (ctrl, _), row in df.iterrows():
+            cell = cells[(labels[ctrl], envs[env])]
+            assert cell.startswith("**") == (row["mean"] == best), cell
+            assert f"n={int(row['n'])}" in cell
+    assert unique_best >= 1, "the store should have a column with a single best cell"
+    assert cells[("DDQN", "Mountain car")] == "—"
+    assert "[paper: 199.37 ± 1.21]" in cells[("H∞ dynamic", "Cartpole")]
+    assert "skipped: no FINISHED runs for environment 'acrobot'" in printed.err
+    assert "skipped: no FINISHED runs for controller 'h2'" in printed.err
+    assert "1 FAILED" in printed.err
+
+    tex = (out / "result_summary.tex").read_text()
+    assert r"\toprule" in tex and r"\bottomrule" in tex and "tab:result_summary" in tex
+    assert tex.count(r"\mathbf{") == int(summary["best"].sum())
+    assert (out / "run_scores.csv").stat().st_size > 0
+
+
+def test_solve_episode_is_first_crossing_of_threshold(
+    store_uri: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    store = RunStore(store_uri, EXPERIMENT)
+    cartpole = store.episodes(["return_ma100"])
+    cartpole = cartpole[cartpole["env"] == "cartpole"]
+    threshold = float(cartpole.groupby("run_id")["return_ma100"].max().median())
+    args = [
+        "--tracking-uri",
+        store_uri,
+        "--experiment",
+        EXPERIMENT,
+        "--out",
+        str(tmp_path),
+        "--threshold",
+        f"cartpole={threshold}",
+    ]
+    assert make_table.main(args) == 0
+    capsys.readouterr()
+    summary = pd.read_csv(tmp_path / "result_summary.csv").set_index(["controller", "env"])
+    direct = _direct_scores(store_uri, {"cartpole": threshold})
+    assert direct["solved"].sum() > 0
+    for key, row in direct.iterrows():
+        got = summary.loc[key]
+        assert got["n_solved"] == row["solved"]
+        if np.isfinite(row["median"]):
+            assert got["median_solve_episode"] == pytest.approx(row["median"])
+        else:
+            assert np.isnan(got["median_solve_episode"])
+
+
+def test_final_score_is_mean_of_last_100_episodes() -> None:
+    n = 150
+    episodes = pd.DataFrame(
+        {
+            "run_id": "r",
+            "env": "cartpole",
+            "controller": "hinf",
+            "seed": 0,
+            "episode": np.arange(n),
+            "episode_return": np.arange(n, dtype=float),
+            "return_ma100": np.arange(n, dtype=float),
+        }
+    ).sample(frac=1.0, random_state=0)
+    runs = pd.DataFrame({"run_id": ["r"], "solve_threshold": [120.0]})
+    scores = run_scores(episodes, runs)
+    assert scores.loc[0, "final_score"] == pytest.approx(np.arange(50, 150).mean())
+    assert scores.loc[0, "solve_episode"] == 121
+
+
+def test_every_figure_written_and_non_empty(
+    store_uri: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code = make_figures.main(
+        ["--tracking-uri", store_uri, "--experiment", EXPERIMENT, "--out", str(tmp_path)]
+    )
+    err = capsys.readouterr().err
+    assert code == 0
+    expected = [
+        "Cartpole_learning", "Mountaincar_learning", "Cartpole_loss", "Cartpole_Q500",
+        "Cartpole_Q1", "Cartpole_controlinput", "Cartpole_controlinput1", "Cartpole_theta",
+        "NTK_range", "FFT", "weight_bode", "closed_loop_sv",
+    ]  # fmt: skip
+    for name in expected:
+        for ext in ("png", "pdf"):
+            path = tmp_path / f"{name}.{ext}"
+            assert path.exists() and path.stat().st_size > 1000, path
+    assert re.search(r"skipped Acrobot_learning: .*acrobot", err)
+    assert "Mountaincar_learning: no ddqn runs" in err
+
+
+def test_missing_selection_is_skipped_with_a_message(
+    store_uri: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    args = [
+        "--tracking-uri",
+        store_uri,
+        "--experiment",
+        EXPERIMENT,
+        "--out",
+        str(tmp_path),
+        "--controller",
+        "h2",
+        "--only",
+        "Cartpole_Q500",
+        "--only",
+        "weight_bode",
+        "--only",
+        "Cartpole_learning",
+    ]
+    assert make_figures.main(args) == 0
+    err = capsys.readouterr().err
+    assert "skipped Cartpole_Q500: no cartpole/h2 run in the store" in err
+    assert "skipped weight_bode: no cartpole/h2 run in the store" in err
+    assert (tmp_path / "Cartpole_learning.png").exists()
+    assert not (tmp_path / "Cartpole_Q500.png").exists()
+
+
+@pytest.mark.parametrize("script", [make_table, make_figures])
+def test_empty_store_is_a_clear_error(
+    script: object, store_uri: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    missing = f"sqlite:///{tmp_path / 'nothing.db'}"
+    for uri, experiment in ((missing, "cdqn"), (store_uri, "no-such-experiment")):
+        with pytest.raises(SystemExit) as exc:
+            script.main(
+                [
+                    "--tracking-uri",
+                    uri,
+                    "--experiment",
+                    experiment,  # type: ignore[attr-defined]
+                    "--out",
+                    str(tmp_path / "out"),
+                ]
+            )
+        assert exc.value.code == 1
+        err = capsys.readouterr().err
+        assert "error: no FINISHED cdqn runs" in err
+        assert uri in err and repr(experiment) in err
+    assert not (tmp_path / "nothing.db").exists()
+    assert not (tmp_path / "out").exists()

@@ -1,0 +1,154 @@
+"""The fast paths compute what the definitions say: stacked networks equal single ones bit
+for bit, the closed-form H2 gain equals the Hamiltonian solution, and Double DQN's
+hand-written minibatch step equals torch autograd's."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from cdqn.agents.ddqn import DDQNAgent
+from cdqn.config import ControllerConfig, TrainConfig
+from cdqn.control.h2 import LQRError, h2_gains, h2_gains_batch, h2_gains_reference
+from cdqn.network import (
+    FastTwoLayer,
+    NetworkSpec,
+    QNetwork,
+    StackedTwoLayer,
+    load_network,
+    save_network,
+)
+
+
+def _nets(k: int, n_obs: int = 4, width: int = 300) -> list[QNetwork]:
+    nets = []
+    for seed in range(k):
+        torch.manual_seed(seed)
+        nets.append(QNetwork(NetworkSpec(n_obs, 2, width)))
+    return nets
+
+
+def test_stacked_members_compute_bit_identically_to_single_networks() -> None:
+    """Every member's forward, Θ1/Θ2 and SGD step equal a FastTwoLayer on its own network,
+    exactly, whatever the population size: the basis of population-equals-single-run."""
+    nets = _nets(4)
+    stack = StackedTwoLayer.from_networks(nets)
+    singles = [FastTwoLayer(n) for n in copy.deepcopy(nets)]
+    gen = np.random.default_rng(0)
+    x = gen.normal(size=(4, 4))
+    for _ in range(25):
+        y = x + 0.1 * gen.normal(size=(4, 4))
+        f1, f2 = stack.forward(x), stack.forward(y)
+        a = gen.integers(2, size=4)
+        b = np.argmax(f2.q, axis=1)
+        td = stack.td_terms(f1, a, f2, b)
+        scale = 1e-3 * gen.normal(size=4)
+        for k, fast in enumerate(singles):
+            g1, g2 = fast.forward(x[k]), fast.forward(y[k])
+            assert np.array_equal(g1.q, f1.q[k]) and np.array_equal(g2.p, f2.p[k])
+            theta1, theta2, grad = fast.td_terms(g1, int(a[k]), g2, int(b[k]))
+            assert theta1 == td.theta1[k] and theta2 == td.theta2[k]
+            assert np.array_equal(grad[0], td.grad_b1[k])
+            fast.sgd_step(g1, int(a[k]), float(scale[k]), grad)
+        stack.sgd_step(f1, a, scale, td.grad_b1)
+        x = y
+    for k, fast in enumerate(singles):
+        assert np.array_equal(fast.stack.w1t[0], stack.w1t[k])
+        assert np.array_equal(fast.w2, stack.w2[k]) and np.array_equal(fast.b1, stack.b1[k])
+    stack.select(np.array([2, 0]))  # leaving members does not change the others' numbers
+    f = stack.forward(x[[2, 0]])
+    assert np.array_equal(f.q[0], singles[2].forward(x[2]).q)
+
+
+def test_td_terms_equal_the_ntk_definition() -> None:
+    (net,) = _nets(1, n_obs=3, width=200)
+    fast = FastTwoLayer(net)
+    gen = np.random.default_rng(1)
+    x, y = gen.normal(size=3), gen.normal(size=3)
+    fx, fy = fast.forward(x), fast.forward(y)
+    for a, b in ((0, 0), (0, 1), (1, 0)):
+        theta1, theta2, _ = fast.td_terms(fx, a, fy, b)
+        assert theta1 == pytest.approx(fast.ntk(fx, a, fx, a), rel=1e-13)
+        assert theta2 == pytest.approx(fast.ntk(fx, a, fy, b), rel=1e-13)
+
+
+def test_hidden_weight_is_input_major_and_round_trips(tmp_path: Path) -> None:
+    (net,) = _nets(1)
+    assert net.hidden.weight.stride() == (1, 300)  # W1ᵀ contiguous, shared with NumPy
+    fast = FastTwoLayer(net)
+    f = fast.forward(np.ones(4))
+    fast.sgd_step(f, 1, 0.01)
+    assert np.array_equal(net.hidden.weight.detach().numpy(), fast.w1)  # same memory
+    save_network(net, tmp_path)
+    loaded = load_network(tmp_path)
+    for p, q in zip(net.parameters(), loaded.parameters(), strict=True):
+        assert torch.equal(p, q)
+
+
+def _h2_cases():
+    gen = np.random.default_rng(7)
+    for i in range(300):
+        a = float(gen.uniform(1.0, 2000.0))
+        b = a * float(gen.uniform(-1.5, 1.5)) if i % 3 else float(gen.uniform(-3000, 3000))
+        gamma = float(gen.choice([1.0, 0.99, 0.5]))
+        w_x = [float(gen.choice([0, 1, 10])), float(gen.choice([0, 1, 100, 3e4])), 10.0]
+        yield a, b, gamma, w_x, float(gen.choice([1.0, 30.0, 2e4]))
+    for w_x, w_c in (([1, 3e4, 10], 2e4), ([1, 100, 80], 30), ([1, 10, 100], 1e3)):  # paper
+        for theta1 in (200.0, 220.0, 350.0, 500.0):
+            for ratio in (0.8, 1.0, 1.2):
+                yield theta1, ratio * theta1, 1.0, w_x, w_c
+
+
+def test_h2_closed_form_equals_the_hamiltonian_solution() -> None:
+    for theta1, theta2, gamma, w_x, w_c in _h2_cases():
+        try:
+            ref = h2_gains_reference(theta1, theta2, gamma, np.array(w_x), w_c)
+        except LQRError:
+            with pytest.raises(LQRError):
+                h2_gains(theta1, theta2, gamma, np.array(w_x), w_c)
+            continue
+        got = h2_gains(theta1, theta2, gamma, np.array(w_x), w_c)
+        np.testing.assert_allclose(got, ref, rtol=1e-8, atol=1e-12)
+
+
+def test_h2_batch_equals_scalar_bit_for_bit() -> None:
+    gen = np.random.default_rng(3)
+    theta1 = gen.uniform(200, 500, size=50)
+    theta2 = theta1 * gen.uniform(0.8, 1.2, size=50)
+    w_x = np.array([1.0, 3e4, 10.0])
+    batch = h2_gains_batch(theta1, theta2, 1.0, w_x, 2e4)
+    scalar = [h2_gains(t1, t2, 1.0, w_x, 2e4) for t1, t2 in zip(theta1, theta2, strict=True)]
+    assert np.array_equal(batch, np.array(scalar))
+
+
+def test_h2_without_integrator_weight_has_no_stabilising_solution() -> None:
+    for solve in (h2_gains, h2_gains_reference):
+        with pytest.raises(LQRError):
+            solve(220.0, 222.0, 1.0, np.array([1.0, 3e4, 0.0]), 2e4)
+
+
+def test_ddqn_hand_written_minibatch_step_equals_autograd() -> None:
+    """Double DQN with the fast path and with torch autograd take the same steps."""
+    (base,) = _nets(1, width=120)
+    cfg = ControllerConfig(
+        name="ddqn", batch_size=8, buffer_size=500, learning_starts=10, target_update=15
+    )
+    agents = []
+    for fast in (True, False):
+        train = TrainConfig(lr=1e-3, fast_path=fast, eps_start=0.0, eps_end=0.0)
+        agents.append(DDQNAgent(copy.deepcopy(base), cfg, train, np.random.default_rng(5)))
+    gen = np.random.default_rng(2)
+    obs = gen.normal(size=4)
+    for t in range(60):
+        nxt = obs + 0.1 * gen.normal(size=4)
+        done = t % 17 == 16
+        recs = [agent.update(obs, t % 2, 1.0, nxt, done) for agent in agents]
+        assert recs[0].loss == pytest.approx(recs[1].loss, rel=1e-9, nan_ok=True)
+        obs = gen.normal(size=4) if done else nxt
+    assert agents[0].steps >= 50  # many minibatch steps and target copies happened
+    for p_fast, p_auto in zip(agents[0].net.parameters(), agents[1].net.parameters(), strict=True):
+        torch.testing.assert_close(p_fast, p_auto, rtol=1e-10, atol=1e-12)

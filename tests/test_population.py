@@ -1,0 +1,210 @@
+"""A population trains each of its seeds exactly as a single run of that seed does."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+from mlflow.tracking import MlflowClient
+from omegaconf import OmegaConf
+
+from cdqn.config import EnvConfig
+from cdqn.control.factory import make_controller
+from cdqn.envs import make_env
+from cdqn.population import (
+    Member,
+    build_population,
+    member_seeds,
+    run_population,
+    train_population,
+)
+from cdqn.signals import SignalBuffer
+from cdqn.train import build, run
+from cdqn.trainer import DivergenceError, TrainState, train
+from cdqn.vector_env import ClassicControlTwin, GymLoop, make_vector_env
+from tests.conftest import compose_config
+
+ENVS = {
+    "CartPole-v1": EnvConfig(),
+    "CartPole obs[2:4]": EnvConfig(obs_indices=[2, 3]),
+    "Acrobot-v1": EnvConfig(name="acrobot", id="Acrobot-v1", max_episode_steps=None),
+    "MountainCar-v0": EnvConfig(name="mountaincar", id="MountainCar-v0"),
+}
+
+
+@pytest.mark.parametrize("name", list(ENVS))
+def test_vectorised_classic_control_steps_equal_gymnasium(name: str) -> None:
+    """Observations, rewards, terminations and truncations of every member equal those of
+    its own gymnasium environment, bit for bit, across resets."""
+    cfg = ENVS[name]
+    k = 3
+    reference = [make_env(cfg) for _ in range(k)]
+    venv = make_vector_env([make_env(cfg) for _ in range(k)])
+    assert isinstance(venv, ClassicControlTwin)
+    obs = np.stack([env.reset(seed=10 + i)[0] for i, env in enumerate(reference)])
+    assert np.array_equal(obs, np.stack([venv.reset(i, 10 + i) for i in range(k)]))
+    gen = np.random.default_rng(0)
+    n_actions = int(reference[0].action_space.n)
+    episodes = 0
+    for _ in range(1500):
+        actions = gen.integers(n_actions, size=k)
+        out = [env.step(int(a)) for env, a in zip(reference, actions, strict=True)]
+        step = venv.step(actions)
+        assert np.array_equal(np.stack([o[0] for o in out]), step.obs)
+        assert np.array_equal(np.array([o[1] for o in out]), step.reward)
+        assert np.array_equal(np.array([o[2] for o in out]), step.terminated)
+        assert np.array_equal(np.array([o[3] for o in out]), step.truncated)
+        for i in np.flatnonzero(step.terminated | step.truncated):
+            episodes += 1
+            assert np.array_equal(reference[i].reset()[0], venv.reset(i, None))
+    assert episodes > 0
+
+
+def test_other_environments_step_through_their_own_envs() -> None:
+    envs = [make_env(EnvConfig(name="pendulum", id="CartPole-v1")) for _ in range(2)]
+    envs[1].unwrapped.kinematics_integrator = "rk4"  # not a dynamics the twin knows
+    assert isinstance(make_vector_env(envs), GymLoop)
+
+
+def _frame(client: MlflowClient, run_id: str, path: str) -> pd.DataFrame:
+    return pd.read_parquet(client.download_artifacts(run_id, path))
+
+
+def _metrics(client: MlflowClient, run_id: str) -> dict[str, list[tuple[int, float]]]:
+    keys = client.get_run(run_id).data.metrics
+    return {k: [(m.step, m.value) for m in client.get_metric_history(run_id, k)] for k in keys}
+
+
+def _artifacts(client: MlflowClient, run_id: str, path: str | None = None) -> list[str]:
+    out = []
+    for item in client.list_artifacts(run_id, path):
+        out += _artifacts(client, run_id, item.path) if item.is_dir else [item.path]
+    return sorted(out)
+
+
+BASE = [
+    "network.width=48",
+    "train.episodes=6",
+    "train.progress=false",
+    "train.checkpoint_every=0",
+    "train.eps_dec=0.02",  # greedy actions early, so that learning shapes the returns
+]
+
+
+def _single(overrides: list[str]) -> tuple[str, str | None, list[float], np.ndarray]:
+    """(status, failure reason, returns, signal rows) of cdqn.train's loop for one seed."""
+    conf = OmegaConf.to_object(compose_config(overrides))
+    env = make_env(conf.env)
+    job = build(conf, env)
+    signals, state = SignalBuffer(), TrainState()
+    status, reason = "FINISHED", None
+    try:
+        train(
+            env,
+            job.agent,
+            episodes=conf.train.episodes,
+            seed=conf.seed,
+            discount=conf.train.discount,
+            q_limit=conf.train.q_limit,
+            signals=signals,
+            state=state,
+            progress=False,
+        )
+    except DivergenceError as err:
+        status, reason = "FAILED", f"diverged: {err}"
+    return status, reason, state.returns, signals.state()
+
+
+def _population(overrides: list[str], seeds: list[int]) -> list[Member]:
+    conf = OmegaConf.to_object(compose_config(overrides))
+    setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
+    agent, venv = build_population(conf, setup, seeds)
+    members = [Member(s, None) for s in seeds]
+    train_population(
+        agent,
+        venv,
+        members,
+        episodes=conf.train.episodes,
+        discount=conf.train.discount,
+        q_limit=conf.train.q_limit,
+    )
+    return members
+
+
+@pytest.mark.parametrize(
+    ("env", "controller"),
+    [("cartpole", "none"), ("cartpole", "hinf_f"), ("cartpole", "h2"), ("acrobot", "hinf")],
+)
+def test_population_members_step_exactly_as_single_runs(env: str, controller: str) -> None:
+    """Every per-step signal (Q1, Q2, u, x_e, Θ1, Θ2, loss) and every return of a member
+    equals the single run of its seed, bit for bit."""
+    overrides = [*BASE, f"env={env}", f"controller={controller}"]
+    if env == "acrobot":
+        overrides += ["train.episodes=2"]
+    members = _population(overrides, [3, 4, 5])
+    for m in members:
+        status, _, returns, rows = _single([*overrides, f"seed={m.seed}"])
+        assert m.status == status == "FINISHED"
+        assert m.returns == returns
+        assert np.array_equal(m.signals.state(), rows)
+        if controller != "none":
+            assert np.abs(rows[:, 5]).sum() > 0  # u acted
+
+
+def test_diverging_members_fail_as_their_single_runs_do() -> None:
+    overrides = [*BASE, "controller=none", "train.lr=0.05", "train.q_limit=50"]
+    members = _population(overrides, [0, 1, 2])
+    statuses = []
+    for m in members:
+        status, reason, returns, rows = _single([*overrides, f"seed={m.seed}"])
+        assert (m.status, m.reason, m.returns) == (status, reason, returns)
+        assert np.array_equal(m.signals.state(), rows)
+        statuses.append(status)
+    assert "FAILED" in statuses
+
+
+def test_population_member_is_recorded_as_its_single_run(tracking_uri: str) -> None:
+    """Same metrics, params, tags (plus ``population``) and artifacts (signals, model,
+    config, design) as the single run of its seed."""
+    base = [*BASE, "controller=hinf", "train.episodes=3", f"tracking.uri={tracking_uri}"]
+    singles = [run(compose_config([*base, f"seed={s}"]), progress=False) for s in (3, 4)]
+    population = run_population(compose_config([*base, "seed=3", "train.population=2"]))
+    client = MlflowClient(tracking_uri)
+    for single, member in zip(singles, population.members, strict=True):
+        assert single.status == member.status == "FINISHED"
+        for path in ("signals/steps.parquet", "signals/fft.parquet"):
+            pd.testing.assert_frame_equal(
+                _frame(client, single.run_id, path),
+                _frame(client, member.run_id, path),
+                check_exact=True,
+            )
+        assert _metrics(client, single.run_id) == _metrics(client, member.run_id)
+        ra, rb = client.get_run(single.run_id).data, client.get_run(member.run_id).data
+        assert ra.params == rb.params
+        tags_a = {k: v for k, v in ra.tags.items() if not k.startswith("mlflow.")}
+        tags_b = {k: v for k, v in rb.tags.items() if not k.startswith("mlflow.")}
+        assert tags_b.pop("population") == "3-4"
+        assert tags_a == tags_b
+        assert _artifacts(client, single.run_id) == _artifacts(client, member.run_id)
+        assert single.final_score == member.final_score
+
+
+def test_double_dqn_population_trains_its_seeds_one_after_another(tracking_uri: str) -> None:
+    cfg = compose_config(
+        [
+            "controller=ddqn",
+            "network.width=16",
+            "train.episodes=2",
+            "controller.learning_starts=10",
+            "train.progress=false",
+            f"tracking.uri={tracking_uri}",
+            "seed=5",
+            "train.population=2",
+        ]
+    )
+    result = run_population(cfg)
+    client = MlflowClient(tracking_uri)
+    seeds = [client.get_run(r.run_id).data.tags["seed"] for r in result.members]
+    assert seeds == ["5", "6"] and member_seeds(5, 2) == [5, 6]
+    assert {r.status for r in result.members} == {"FINISHED"}
+    assert result.summary().status == "FINISHED"

@@ -1,0 +1,195 @@
+"""SIGINT/SIGTERM stop a run at an episode boundary with a checkpoint (status KILLED);
+``resume=<run_id>`` continues it to a result equal to an uninterrupted run."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from mlflow.tracking import MlflowClient
+
+from cdqn.checkpoint import CheckpointStore
+from cdqn.config import ConfigError
+from cdqn.tracking import TrackingError
+from cdqn.train import run
+from tests.conftest import compose_config
+from tests.helpers import run_cli, signals_after_episode
+
+CONTROLLED = [
+    "controller=hinf",
+    "controller.reset_state=false",  # controller state x_c carried across episodes
+    "controller.reset_integrator=false",  # and so is x_e
+    "network.width=32",
+    "train.episodes=12",
+    "train.progress=false",
+    "seed=3",
+]
+DDQN = [
+    "controller=ddqn",
+    "controller.buffer_size=100",  # wraps around before the interruption
+    "controller.learning_starts=20",
+    "controller.batch_size=8",
+    "controller.target_update=30",
+    "network.width=32",
+    "train.episodes=12",
+    "train.progress=false",
+    "seed=4",
+]
+
+
+@pytest.fixture
+def signal_at(monkeypatch: pytest.MonkeyPatch) -> Callable[..., None]:
+    return signals_after_episode(monkeypatch)
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory: pytest.TempPathFactory) -> str:
+    return f"sqlite:///{tmp_path_factory.mktemp('store') / 'mlflow.db'}"
+
+
+def _returns(client: MlflowClient, run_id: str) -> list[float]:
+    history = client.get_metric_history(run_id, "episode_return")
+    steps = [m.step for m in history]
+    assert len(steps) == len(set(steps)), "an episode was logged twice"
+    return [m.value for m in sorted(history, key=lambda m: m.step)]
+
+
+def _signals(client: MlflowClient, run_id: str) -> pd.DataFrame:
+    with tempfile.TemporaryDirectory() as tmp:
+        return pd.read_parquet(client.download_artifacts(run_id, "signals/steps.parquet", tmp))
+
+
+def _assert_same_run(client: MlflowClient, resumed: str, reference: str) -> None:
+    assert client.get_run(resumed).info.status == "FINISHED"
+    assert _returns(client, resumed) == _returns(client, reference)
+    pd.testing.assert_frame_equal(_signals(client, resumed), _signals(client, reference))
+
+
+@pytest.mark.parametrize("overrides", [CONTROLLED, DDQN], ids=["hinf", "ddqn"])
+def test_signal_checkpoint_resume_equals_uninterrupted(
+    store: str, overrides: list[str], signal_at: Callable[..., None]
+) -> None:
+    client = MlflowClient(store)
+    cfg = compose_config([*overrides, f"tracking.uri={store}", "train.checkpoint_every=0"])
+    signal_at(4, signal.SIGTERM)
+    killed = run(cfg, progress=False)
+    assert (killed.status, killed.signum) == ("KILLED", signal.SIGTERM)
+    info = client.get_run(killed.run_id)
+    assert info.info.status == "KILLED"
+    assert info.data.tags["failure_reason"].startswith("SIGTERM after episode 5 of 12")
+    assert len(_returns(client, killed.run_id)) == 5
+    assert len(_signals(client, killed.run_id)) > 0  # flushed at the interruption
+    ckpt = CheckpointStore(client, killed.run_id).load()
+    assert ckpt is not None and ckpt.episode == 5
+
+    resumed = run(compose_config([f"resume={killed.run_id}", f"tracking.uri={store}"]), False)
+    assert (resumed.run_id, resumed.status) == (killed.run_id, "FINISHED")
+    tags = client.get_run(killed.run_id).data.tags
+    assert tags["resumed_from_episode"] == "5" and "failure_reason" not in tags
+    assert tags["previous_failure_reason"].startswith("SIGTERM")
+
+    reference = run(compose_config([*overrides, f"tracking.uri={store}"]), progress=False)
+    _assert_same_run(client, killed.run_id, reference.run_id)
+
+
+def test_second_signal_stops_at_once_and_resumes_from_periodic_checkpoint(
+    store: str, signal_at: Callable[..., None]
+) -> None:
+    client = MlflowClient(store)
+    cfg = compose_config([*CONTROLLED, f"tracking.uri={store}", "train.checkpoint_every=2"])
+    signal_at(6, signal.SIGINT, signal.SIGINT)
+    with pytest.raises(KeyboardInterrupt):
+        run(cfg, progress=False)
+    killed = client.search_runs(
+        [client.get_experiment_by_name("cdqn").experiment_id],
+        "attributes.status = 'KILLED'",
+        order_by=["attributes.start_time DESC"],
+    )[0]
+    reason = killed.data.tags["failure_reason"]
+    assert "the last checkpoint is at episode 6" in reason, reason
+    assert len(_returns(client, killed.info.run_id)) == 7  # more than the checkpoint holds
+
+    # slots a, b, a took episodes 2, 4, 6; spoil the newest (as a write cut short by a hard
+    # kill would): resume falls back to the other slot
+    with tempfile.TemporaryDirectory() as tmp:
+        bad = Path(tmp) / "state.pt"
+        bad.write_bytes(b"truncated")
+        client.log_artifact(killed.info.run_id, str(bad), "checkpoint/slot-a")
+    ckpt = CheckpointStore(client, killed.info.run_id).load()
+    assert ckpt is not None and ckpt.episode == 4
+
+    run(compose_config([f"resume={killed.info.run_id}", f"tracking.uri={store}"]), False)
+    reference = run(compose_config([*CONTROLLED, f"tracking.uri={store}"]), progress=False)
+    _assert_same_run(client, killed.info.run_id, reference.run_id)
+
+
+def test_resume_refuses_what_cannot_be_continued(store: str) -> None:
+    finished = run(compose_config([*CONTROLLED, "train.episodes=2", f"tracking.uri={store}"]))
+    with pytest.raises(ConfigError, match="FINISHED; there is nothing to continue"):
+        run(compose_config([f"resume={finished.run_id}", f"tracking.uri={store}"]))
+    with pytest.raises(TrackingError, match="resume=0123456789abcdef: no such run"):
+        run(compose_config(["resume=0123456789abcdef", f"tracking.uri={store}"]))
+    diverged = run(
+        compose_config(
+            ["controller=none", "train.lr=0.05", "network.width=32", f"tracking.uri={store}"]
+        ),
+        progress=False,
+    )
+    assert diverged.status == "FAILED"
+    with pytest.raises(ConfigError, match="would diverge again"):
+        run(compose_config([f"resume={diverged.run_id}", f"tracking.uri={store}"]))
+
+
+@pytest.mark.slow
+def test_sigterm_to_training_process_then_cli_resume(tmp_path: Path, store: str) -> None:
+    """The real thing end to end: a training subprocess gets SIGTERM, a second process
+    resumes it from the store, and the returns equal an uninterrupted run's."""
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    args = [*CONTROLLED, "train.episodes=400", "train.checkpoint_every=25", f"tracking.uri={uri}"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cdqn.train", *args],
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    deadline, seen = time.monotonic() + 240, []
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:  # wait for the first periodic checkpoint, then signal
+            seen.append(line)
+            if "checkpoint at episode 25" in line:
+                proc.send_signal(signal.SIGTERM)
+                break
+            assert time.monotonic() < deadline, "".join(seen)
+        rest, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+    output = "".join(seen) + rest
+    assert proc.returncode == 128 + signal.SIGTERM, output
+    client = MlflowClient(uri)
+    (killed,) = client.search_runs(["1"])
+    assert killed.info.status == "KILLED"
+    stopped_at = len(_returns(client, killed.info.run_id))
+    assert 25 <= stopped_at < 400, output
+
+    resumed = run_cli(
+        "cdqn.train", [f"resume={killed.info.run_id}", f"tracking.uri={uri}"], tmp_path
+    )
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert f"resuming MLflow run {killed.info.run_id} at episode {stopped_at} of 400" in (
+        resumed.stdout + resumed.stderr
+    )
+    reference = run(compose_config([*args[:-1], "train.checkpoint_every=0", f"tracking.uri={uri}"]))
+    _assert_same_run(client, killed.info.run_id, reference.run_id)

@@ -1,0 +1,167 @@
+"""``tracking=server``: a real MLflow tracking server takes whole runs, checkpoints and
+resumes; an unreachable or wrong URI is refused at start, within seconds."""
+
+from __future__ import annotations
+
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterator
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from mlflow.tracking import MlflowClient
+
+from cdqn.config import EvaluateConfig, TrackingConfig
+from cdqn.evaluate import evaluate
+from cdqn.tracking import TrackingError, check_tracking
+from cdqn.train import run
+from tests.conftest import TINY, compose_config
+from tests.helpers import free_port, mlflow_server, run_cli, signals_after_episode
+
+
+class _NotMlflow(BaseHTTPRequestHandler):
+    """Some other web service: 404 everywhere, or 200 with a page that is not MLflow's."""
+
+    status = 404
+
+    def do_GET(self) -> None:  # noqa: N802 (http.server's name)
+        self.send_response(self.status)
+        self.end_headers()
+        self.wfile.write(b"<html>hello</html>")
+
+    def log_message(self, *args: object) -> None:
+        pass
+
+
+@pytest.fixture
+def other_service() -> Iterator[Callable[[int], str]]:
+    servers: list[ThreadingHTTPServer] = []
+
+    def start(status: int) -> str:
+        handler = type("Handler", (_NotMlflow,), {"status": status})
+        server = ThreadingHTTPServer(("127.0.0.1", 0), handler)
+        threading.Thread(target=server.serve_forever, daemon=True).start()
+        servers.append(server)
+        return f"http://127.0.0.1:{server.server_address[1]}"
+
+    yield start
+    for server in servers:
+        server.shutdown()
+        server.server_close()
+
+
+def test_unreachable_server_refused_within_seconds(tmp_path: Path) -> None:
+    uri = f"http://127.0.0.1:{free_port()}"
+    t0 = time.monotonic()
+    with pytest.raises(TrackingError) as exc:
+        check_tracking(uri, timeout=2.0)
+    assert time.monotonic() - t0 < 5
+    msg = str(exc.value)
+    assert msg.startswith(f"tracking.uri='{uri}': no MLflow tracking server reachable")
+    assert "Connection refused" in msg and "mlflow server" in msg
+
+    cfg = compose_config([*TINY, "tracking=server", f"tracking.uri={uri}"])
+    t0 = time.monotonic()
+    with pytest.raises(TrackingError, match="no MLflow tracking server reachable"):
+        run(cfg, progress=False)
+    assert time.monotonic() - t0 < 5  # refused before anything is built or trained
+
+
+@pytest.mark.parametrize("status", [404, 200])
+def test_wrong_uri_refused(other_service: Callable[[int], str], status: int) -> None:
+    uri = other_service(status)
+    with pytest.raises(TrackingError, match="not an MLflow tracking server"):
+        check_tracking(uri, timeout=2.0)
+
+
+def test_unwritable_local_store_refused(tmp_path: Path) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    with pytest.raises(TrackingError, match="cannot create"):
+        check_tracking(f"sqlite:///{blocker}/sub/mlflow.db")
+
+
+def test_cli_unreachable_server_exit_2(tmp_path: Path) -> None:
+    port = free_port()
+    proc = run_cli(
+        "cdqn.train", [*TINY, "tracking=server", f"tracking.uri=http://127.0.0.1:{port}"], tmp_path
+    )
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    out = proc.stdout + proc.stderr
+    assert f"tracking.uri='http://127.0.0.1:{port}': no MLflow tracking server reachable" in out
+    assert "Traceback" not in out
+
+
+def test_server_uri_from_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "http://127.0.0.1:5999")
+    assert compose_config(["tracking=server"]).tracking.uri == "http://127.0.0.1:5999"
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, Path]]:
+    root = tmp_path_factory.mktemp("mlflow-server")
+    with mlflow_server(root) as uri:
+        yield uri, root
+
+
+@pytest.fixture
+def signal_at(monkeypatch: pytest.MonkeyPatch) -> Callable[..., None]:
+    return signals_after_episode(monkeypatch)
+
+
+@pytest.mark.slow
+def test_training_against_a_real_server(server: tuple[str, Path]) -> None:
+    uri, root = server
+    overrides = [*TINY, "train.episodes=5", "train.checkpoint_every=2", "controller=hinf_f"]
+    result = run(compose_config([*overrides, "tracking=server", f"tracking.uri={uri}"]))
+    assert result.status == "FINISHED"
+    client = MlflowClient(uri)
+    info = client.get_run(result.run_id)
+    assert info.info.status == "FINISHED"
+    assert info.data.params["tracking.uri"] == uri
+    assert len(client.get_metric_history(result.run_id, "episode_return")) == 5
+    steps = pd.read_parquet(client.download_artifacts(result.run_id, "signals/steps.parquet"))
+    assert steps["episode"].max() == 4
+    # artifacts went through the server into its artifact root
+    (run_dir,) = (root / "artifacts").rglob(result.run_id)  # <experiment>/<run id>/artifacts
+    for name in (
+        "config.yaml",
+        "model/q_network.pt",
+        "model/spec.json",
+        "signals/steps.parquet",
+        "checkpoint/slot-a/state.pt",
+        "checkpoint/slot-b/state.pt",
+    ):
+        assert (run_dir / "artifacts" / name).is_file(), name
+
+    evaluation = evaluate(
+        EvaluateConfig(run_id=result.run_id, episodes=3, tracking=TrackingConfig(uri=uri))
+    )
+    assert len(evaluation.returns) == 3
+    metrics = client.get_run(result.run_id).data.metrics
+    assert metrics["eval_return_mean"] == pytest.approx(evaluation.mean)
+
+
+@pytest.mark.slow
+def test_interrupt_and_resume_through_the_server(
+    server: tuple[str, Path], signal_at: Callable[..., None]
+) -> None:
+    uri, _ = server
+    overrides = [*TINY, "train.episodes=8", "controller=hinf", "seed=2", f"tracking.uri={uri}"]
+    signal_at(2, signal.SIGINT)
+    killed = run(compose_config(overrides), progress=False)
+    assert killed.status == "KILLED"
+    resumed = run(compose_config([f"resume={killed.run_id}", f"tracking.uri={uri}"]))
+    assert resumed.status == "FINISHED"
+    reference = run(compose_config(overrides), progress=False)
+    client = MlflowClient(uri)
+
+    def returns(run_id: str) -> list[float]:
+        history = client.get_metric_history(run_id, "episode_return")
+        return [m.value for m in sorted(history, key=lambda m: m.step)]
+
+    assert returns(killed.run_id) == returns(reference.run_id)
+    assert len(returns(killed.run_id)) == 8

@@ -1,0 +1,174 @@
+"""Sweeps: every sweep and launcher config composes, a restarted sweep skips what already
+FINISHED, and parallel jobs share a fresh SQLite store safely."""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from mlflow.tracking import MlflowClient
+from omegaconf import DictConfig, OmegaConf
+
+from cdqn.config import validate
+from cdqn.population import run_population
+from cdqn.sweep import PrepareStore, config_hash, ensure_store
+from cdqn.train import run
+from tests.conftest import CONF_DIR, compose_config
+
+ROOT = CONF_DIR.parent
+SWEEPS = ROOT / "sweeps"
+LAUNCHERS = {
+    "local": "hydra_plugins.hydra_joblib_launcher.joblib_launcher.JoblibLauncher",
+    "slurm": "hydra_plugins.hydra_submitit_launcher.submitit_launcher.SlurmLauncher",
+    "ray_cluster": "hydra_plugins.hydra_ray_launcher.ray_launcher.RayLauncher",
+}
+
+
+def _compose_sweep(name: str, overrides: list[str], hydra: bool = True) -> DictConfig:
+    """What ``python -m cdqn.train -m --config-dir sweeps --config-name <name>`` composes."""
+    with initialize_config_dir(str(SWEEPS), version_base="1.3"):
+        return compose(
+            name,
+            overrides=[f"hydra.searchpath=[file://{CONF_DIR}]", *overrides],
+            return_hydra_config=hydra,
+        )
+
+
+@pytest.mark.parametrize("sweep", sorted(p.stem for p in SWEEPS.glob("*.yaml")))
+@pytest.mark.parametrize("launcher", sorted(LAUNCHERS))
+def test_sweep_and_launcher_configs_compose(sweep: str, launcher: str) -> None:
+    cfg = _compose_sweep(sweep, [f"hydra/launcher={launcher}"])
+    assert cfg.hydra.launcher._target_ == LAUNCHERS[launcher]
+    params = cfg.hydra.sweeper.params
+    assert params.env.split(",") == ["cartpole", "acrobot", "mountaincar"]
+    assert params.controller.split(",") == ["h2", "hinf", "hinf_f", "ddqn"]
+    assert cfg.tracking.skip_finished and cfg.train.population >= 2
+
+
+def test_every_job_of_the_paper_sweep_is_a_valid_configuration() -> None:
+    for env in ("cartpole", "acrobot", "mountaincar"):
+        for controller in ("h2", "hinf", "hinf_f", "ddqn"):
+            cfg = _compose_sweep("paper", [f"env={env}", f"controller={controller}"], False)
+            validate(OmegaConf.to_object(cfg))
+            assert (cfg.train.episodes, cfg.network.width, cfg.train.lr) == (2000, 2500, 5e-5)
+            assert (cfg.weights.name, cfg.train.population, cfg.seed) == (env, 10, 0)
+
+
+def test_the_command_line_composes_the_paper_sweep(tmp_path: Path) -> None:
+    """``python -m cdqn.train --config-dir sweeps --config-name paper --cfg job``."""
+    out = subprocess.run(
+        [sys.executable, "-m", "cdqn.train", "--config-dir", str(SWEEPS), "--config-name",
+         "paper", "hydra/launcher=slurm", "--cfg", "job"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300, check=True,
+    )  # fmt: skip
+    job = OmegaConf.create(out.stdout)
+    assert job.train.population == 10 and job.tracking.skip_finished is True
+
+
+def test_config_hash_ignores_where_and_how_a_run_is_recorded() -> None:
+    base = compose_config(["seed=1"])
+    same = compose_config(
+        [
+            "seed=1",
+            "tracking.uri=sqlite:////elsewhere/m.db",
+            "tracking.skip_finished=true",
+            "train.progress=false",
+            "train.checkpoint_every=7",
+            "train.population=4",
+        ]
+    )
+    assert config_hash(base) == config_hash(same)
+    assert config_hash(base) != config_hash(compose_config(["seed=2"]))
+    assert config_hash(base) != config_hash(compose_config(["seed=1", "train.lr=1e-4"]))
+    assert config_hash(base) != config_hash(compose_config(["seed=1", "env=acrobot"]))
+
+
+TINY = [
+    "network.width=16",
+    "train.episodes=2",
+    "train.progress=false",
+    "train.checkpoint_every=0",
+    "controller=hinf_f",
+    "tracking.skip_finished=true",
+]
+
+
+def _runs(uri: str) -> list:
+    client = MlflowClient(uri)
+    return client.search_runs([e.experiment_id for e in client.search_experiments()])
+
+
+def test_a_restarted_run_skips_a_finished_one_and_retrains_a_failed_one(
+    tracking_uri: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    cfg = compose_config([*TINY, f"tracking.uri={tracking_uri}", "seed=0"])
+    first = run(cfg, progress=False)
+    with caplog.at_level(logging.INFO, logger="cdqn"):
+        again = run(cfg, progress=False)
+    assert (again.run_id, again.status) == (first.run_id, "FINISHED")
+    assert again.final_score == pytest.approx(first.final_score)
+    assert "skipping cartpole/hinf_f seed 0" in caplog.text
+    assert len(_runs(tracking_uri)) == 1
+    MlflowClient(tracking_uri).set_terminated(first.run_id, "FAILED")
+    retrained = run(cfg, progress=False)
+    assert retrained.run_id != first.run_id and len(_runs(tracking_uri)) == 2
+    other = run(compose_config([*TINY, f"tracking.uri={tracking_uri}", "seed=1"]), False)
+    assert other.run_id not in (first.run_id, retrained.run_id)
+
+
+def test_a_restarted_population_trains_only_the_missing_seeds(
+    tracking_uri: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    run(compose_config([*TINY, f"tracking.uri={tracking_uri}", "seed=1"]), progress=False)
+    cfg = compose_config([*TINY, f"tracking.uri={tracking_uri}", "seed=0", "train.population=3"])
+    with caplog.at_level(logging.INFO, logger="cdqn"):
+        result = run_population(cfg)
+    assert "skipping cartpole/hinf_f seed 1" in caplog.text
+    runs = _runs(tracking_uri)
+    assert sorted(r.data.tags["seed"] for r in runs) == ["0", "1", "2"]
+    assert [r.status for r in result.members] == ["FINISHED"] * 3
+    assert len(_runs(tracking_uri)) == 3
+    assert run_population(cfg).summary().run_id == result.summary().run_id  # all skipped
+    assert len(_runs(tracking_uri)) == 3
+
+
+def test_parallel_jobs_can_open_a_fresh_sqlite_store(tmp_path: Path) -> None:
+    """Three processes create the same fresh store and experiment at once (unguarded, the
+    first migration of a fresh SQLite store fails in all but one and corrupts it)."""
+    uri = f"sqlite:///{tmp_path / 'fresh.db'}"
+    with multiprocessing.get_context("spawn").Pool(3) as pool:
+        pool.starmap(ensure_store, [(uri, "cdqn")] * 3)
+    client = MlflowClient(uri)
+    assert [e.name for e in client.search_experiments()].count("cdqn") == 1
+    client.create_run(client.get_experiment_by_name("cdqn").experiment_id)
+
+
+def test_the_store_is_prepared_before_a_multirun_starts(tmp_path: Path) -> None:
+    cfg = compose_config([f"tracking.uri=sqlite:///{tmp_path / 'sweep.db'}"])
+    PrepareStore().on_multirun_start(cfg)
+    assert (tmp_path / "sweep.db").exists()
+    assert MlflowClient(cfg.tracking.uri).get_experiment_by_name("cdqn") is not None
+
+
+@pytest.mark.slow
+def test_an_interrupted_local_sweep_started_again_skips_what_finished(tmp_path: Path) -> None:
+    """The smoke sweep through the joblib launcher, twice: the second time every run is
+    skipped (a real multirun with a real store)."""
+    cmd = [sys.executable, "-m", "cdqn.train", "-m", "--config-dir", str(SWEEPS),
+           "--config-name", "smoke", "env=cartpole", "controller=hinf_f,ddqn",
+           "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={tmp_path / 'multirun'}"]  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, timeout=600, check=True)
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    first = {r.info.run_id for r in _runs(uri)}
+    assert len(first) == 4
+    out = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert (out.stdout + out.stderr).count("skipping") == 4
+    assert {r.info.run_id for r in _runs(uri)} == first

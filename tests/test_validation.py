@@ -1,0 +1,135 @@
+"""Bad configurations are refused at start, naming key, value and what is allowed."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from cdqn.cli import EXIT_CONFIG, check_overrides, preflight
+from cdqn.config import Config, ConfigError, validate
+from cdqn.train import run
+from tests.conftest import TINY, compose_config
+from tests.helpers import run_cli
+
+# (overrides, fragments the single error message must contain)
+BAD = [
+    (["controller=foo"], ["controller=foo", "unknown controller", "ddqn, h2, hinf, hinf_f, none"]),
+    (["env=nope"], ["env=nope", "allowed: acrobot, cartpole"]),
+    (["env.id=NoSuchEnv-v0"], ["env.id='NoSuchEnv-v0'", "not a registered gymnasium"]),
+    (["env.id=Pendulum-v1"], ["env.id='Pendulum-v1'", "Box", "Discrete"]),
+    (["network.width=0"], ["network.width=0", "positive integer"]),
+    (["network.width=-3"], ["network.width=-3", "positive integer"]),
+    (["network.width=abc"], ["network.width=abc", "Integer", "takes int"]),
+    (["train.lr=0"], ["train.lr=0", "α must be > 0"]),
+    (["train.lr=-1e-3"], ["train.lr=-0.001", "α must be > 0"]),
+    (["train.discount=0"], ["train.discount=0", "(0, 1]"]),
+    (["train.discount=1.5"], ["train.discount=1.5", "(0, 1]"]),
+    (["train.eps_start=1.2"], ["train.eps_start=1.2", "[0, 1]"]),
+    (["train.eps_end=-0.1"], ["train.eps_end=-0.1", "[0, 1]"]),
+    (
+        ["weights.hinf.w_p.num=[1,2,3]"],
+        ["weights.hinf.w_p=num [1.0, 2.0, 3.0] / den [0.1, 1.0]", "not a proper"],
+    ),
+    (["weights.hinf_f.w_u.den=[0,0]"], ["weights.hinf_f.w_u", "not a proper"]),
+    (
+        ["weights.theta_bounds.theta1=[500,200]"],
+        ["weights.theta_bounds.theta1=[500.0, 200.0]", "lower <= upper"],
+    ),
+    (["weights.theta_bounds.ratio=[1.2,0.8]"], ["weights.theta_bounds.ratio", "lower <= upper"]),
+    (["foo=1"], ["foo: no such setting", "allowed: env, network"]),
+    (["network.depth=2"], ["network.depth: no such setting in network", "width, dtype"]),
+    (["tracking=nope"], ["tracking=nope", "allowed: local, server"]),
+    (["train.checkpoint_every=-1"], ["train.checkpoint_every=-1", ">= 0"]),
+    (["tracking.timeout=0"], ["tracking.timeout=0", "> 0"]),
+    (["seed=1.5"], ["seed=1.5", "takes int"]),
+    (["network.width=[1"], ["network.width=[1", "cannot parse"]),
+    (["resume=abc", "train.lr=0.1"], ["train.lr=0.1", "resume=<run_id> continues"]),
+]
+
+
+@pytest.mark.parametrize(("overrides", "fragments"), BAD, ids=[" ".join(o) for o, _ in BAD])
+def test_bad_override_named_with_what_is_allowed(overrides: list[str], fragments: list[str]):
+    errors = check_overrides(overrides)
+    assert len(errors) == 1, errors
+    for fragment in fragments:
+        assert fragment in errors[0], (fragment, errors[0])
+
+
+def test_every_problem_reported_at_once():
+    errors = check_overrides(
+        ["network.width=0", "train.lr=0", "train.discount=2", "train.eps_start=3"]
+    )
+    assert [e.split("=")[0] for e in errors] == [
+        "network.width",
+        "train.lr",
+        "train.discount",
+        "train.eps_start",
+    ]
+
+
+def test_multirun_checks_every_swept_value():
+    assert check_overrides(["controller=h2,foo"], multirun=True) == [
+        "controller=foo: unknown controller; allowed: ddqn, h2, hinf, hinf_f, none"
+    ]
+    errors = check_overrides(["network.width=8,0", "seed=0,1"], multirun=True)
+    assert errors == ["network.width=0: must be a positive integer"]
+    assert check_overrides(["controller=h2,hinf_f", "env=acrobot,cartpole"], multirun=True) == []
+
+
+def test_good_configs_pass():
+    assert check_overrides([]) == []
+    assert check_overrides(["env=acrobot", "controller=ddqn", "network=small"]) == []
+    assert check_overrides(["resume=0123abcd", "tracking.uri=sqlite:///x.db"]) == []
+
+
+def test_preflight_exits_2_with_message(capsys: pytest.CaptureFixture[str]):
+    with pytest.raises(SystemExit) as exc:
+        preflight(["controller=foo", "train.episodes=3"])
+    assert exc.value.code == EXIT_CONFIG
+    err = capsys.readouterr().err
+    assert err.startswith("cdqn: invalid configuration, nothing was started:\n")
+    assert "controller=foo: unknown controller" in err
+    preflight(["--cfg", "job", "controller=foo"])  # Hydra's own flags: left to Hydra
+
+
+def test_validate_schema_directly():
+    conf: Config = OmegaConf.to_object(compose_config(["train.discount=0"]))  # type: ignore[assignment]
+    with pytest.raises(ConfigError, match=r"train\.discount=0\.0: the discount γ"):
+        validate(conf)
+
+
+def test_run_refuses_before_creating_anything(tracking_uri: str, tmp_path: Path):
+    cfg = compose_config([*TINY, "network.width=0", f"tracking.uri={tracking_uri}"])
+    with pytest.raises(ConfigError, match="network.width=0"):
+        run(cfg, progress=False)
+    cfg = compose_config([*TINY, "env.id=MountainCarContinuous-v0", f"tracking.uri={tracking_uri}"])
+    with pytest.raises(ConfigError, match="Discrete"):
+        run(cfg, progress=False)
+    assert not Path(tracking_uri.removeprefix("sqlite:///")).exists()  # no store, no run
+
+
+# The real command line, in a subprocess: exit status 2, the message, no traceback.
+CLI = [
+    (
+        ["controller=foo"],
+        "controller=foo: unknown controller; allowed: ddqn, h2, hinf, hinf_f, none",
+    ),
+    (["network.width=abc"], "network.width=abc: Value 'abc' of type 'str' could not be converted"),
+    (
+        ["network.width=0", "train.discount=1.5", "train.eps_start=-1"],
+        "network.width=0: must be a positive integer\n"
+        "  - train.discount=1.5: the discount γ must lie in (0, 1]\n"
+        "  - train.eps_start=-1.0: ε must lie in [0, 1]",
+    ),
+]
+
+
+@pytest.mark.parametrize(("overrides", "expected"), CLI, ids=[o[0] for o, _ in CLI])
+def test_cli_refuses_bad_config(overrides: list[str], expected: str, tmp_path: Path):
+    proc = run_cli("cdqn.train", [*overrides, f"tracking.uri=sqlite:///{tmp_path}/m.db"], tmp_path)
+    assert proc.returncode == EXIT_CONFIG, proc.stderr
+    assert expected in proc.stderr
+    assert "Traceback" not in proc.stderr + proc.stdout
+    assert not (tmp_path / "m.db").exists()
