@@ -90,8 +90,10 @@ log = logging.getLogger("cdqn")
 
 CLOCKS = {"cpu": time.process_time, "wall": time.perf_counter}
 clock = time.process_time
-"""Seconds are CPU seconds of this process by default (``--clock cpu``): on an otherwise idle
-core they equal wall-clock seconds, and other load on a shared machine barely moves them."""
+"""Training seconds are CPU seconds of this process by default (``--clock cpu``): on an
+otherwise idle core they equal wall-clock seconds, and other load on a shared machine barely
+moves them.  Writes to the tracking store (metrics, opening and closing runs) wait for the
+disk and are always timed in wall-clock seconds."""
 
 
 @dataclass
@@ -202,9 +204,9 @@ def measure_single(cfg: DictConfig, uri: str, steps: int, warmup: int) -> Throug
         except DivergenceError:
             seed += 1_000
         finally:
-            t0 = clock()
+            t0 = time.perf_counter()
             recorder.flush()
-            flush_s = clock() - t0
+            flush_s = time.perf_counter() - t0
             recorder.finish()
             env.close()
         if len(window) == 2:
@@ -236,10 +238,10 @@ def measure_population(
     seeds = list(range(conf.seed, conf.seed + k))
     agent, venv = build_population(conf, setup, seeds)
     members = [Member(s, member_config(cfg, s)) for s in seeds]
-    t_open = clock()
+    t_open = time.perf_counter()
     for m in members:
         m.recorder = start_member_run(m, conf, setup, uri, f"{seeds[0]}-{seeds[-1]}")
-    t_open = clock() - t_open
+    t_open = time.perf_counter() - t_open
     timer: dict[str, float] = {"calls": 0, "member_steps": 0}
     ended: list[float] = []
     flushes: list[float] = []
@@ -268,12 +270,12 @@ def measure_population(
 
     def on_member_end(m: Member, pop: Any, j: int) -> None:
         assert m.recorder is not None
-        t = clock()
+        t = time.perf_counter()
         m.recorder.flush()
-        flushes.append(clock() - t)
-        t = clock()
+        flushes.append(time.perf_counter() - t)
+        t = time.perf_counter()
         finish_member(m, pop.network(j), conf)
-        ended.append(clock() - t)
+        ended.append(time.perf_counter() - t)
 
     train_population(
         agent,
@@ -329,17 +331,22 @@ def estimate_paper_sweep(
     lengths = dict(EPISODE_LENGTH if lengths is None else lengths)
     rates: dict[str, dict[str, float]] = {}
     overhead: list[float] = []
+    metric = [metric_s] if np.isfinite(metric_s) else []
     for env in PAPER_ENVS:
         rates[env] = {}
         for ctrl in PAPER_CONTROLLERS:
             cfg = compose_config(_overrides(env, ctrl, width, uri))
             if ctrl == "ddqn":
-                rates[env][ctrl] = measure_single(cfg, uri, steps, warmup).steps_per_s
+                measured = measure_single(cfg, uri, steps, warmup)
             else:
                 pop = measure_population(cfg, uri, k, steps // k + 1, warmup // k + 1)
-                rates[env][ctrl] = pop.member_steps.steps_per_s
+                measured = pop.member_steps
                 overhead.append(pop.run_overhead_s)
+            rates[env][ctrl] = measured.steps_per_s
+            if measured.episodes and not np.isfinite(metric_s):
+                metric.append(measured.metric_write_s / measured.episodes)
     per_run = _median(overhead)
+    metric_s = _median(metric)
     jobs: dict[str, list[float]] = {"expected": [], "upper": []}
     for env in PAPER_ENVS:
         for ctrl in PAPER_CONTROLLERS:
@@ -430,7 +437,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 metric.append(t.metric_write_s / t.episodes)
             return t.steps_per_s
 
-        for _ in range(args.repeats):
+        for _ in range(0 if args.only_estimate else args.repeats):
             floor.append(measure_floor(base, args.steps, args.warmup).steps_per_s)
             for c in controllers:
                 single[c].append(keep(measure_single(cfgs[c], uri, args.steps, args.warmup)))
@@ -491,16 +498,19 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 def format_report(r: dict[str, Any]) -> str:
     lines = [
         f"cdqn.bench: {r['env']}, width {r['width']}, one core, logging on ({r['clock']} seconds)",
-        "",
-        f"{'':<26}{'steps/s':>10}{'cost / floor':>14}",
-        f"{'floor (torch autograd)':<26}{r['floor']['steps_per_s']:>10.0f}{1.0:>14.2f}",
     ]
-    for name, c in r["controllers"].items():
-        lines.append(f"{name:<26}{c['steps_per_s']:>10.0f}{c['ratio_to_floor']:>14.2f}")
-    lines.append(
-        f"(MLflow episode metrics: {1e3 * r['metric_write_s_per_episode']:.1f} ms per episode "
-        "and run, written in batches, timed apart)"
-    )
+    if r["controllers"]:
+        lines += [
+            "",
+            f"{'':<26}{'steps/s':>10}{'cost / floor':>14}",
+            f"{'floor (torch autograd)':<26}{r['floor']['steps_per_s']:>10.0f}{1.0:>14.2f}",
+        ]
+        for name, c in r["controllers"].items():
+            lines.append(f"{name:<26}{c['steps_per_s']:>10.0f}{c['ratio_to_floor']:>14.2f}")
+        lines.append(
+            f"(MLflow episode metrics: {1e3 * r['metric_write_s_per_episode']:.1f} ms per "
+            "episode and run, written in batches, timed apart)"
+        )
     if "population" in r:
         p = r["population"]
         lines += ["", f"population K={p['k']} (member-steps/s, speed-up over sequential runs)"]
@@ -510,20 +520,21 @@ def format_report(r: dict[str, Any]) -> str:
         e = r["estimate"]
         lines += [
             "",
-            f"paper sweep (3 envs x 4 controllers x {PAPER_SEEDS} seeds x {PAPER_EPISODES} "
-            f"episodes, width {r['width']}) on {e['workers']} workers:",
+            f"sweep: 3 envs x 4 controllers x {PAPER_SEEDS} seeds x {e['episodes']} episodes, "
+            f"width {r['width']}, populations of {PAPER_SEEDS} (Double DQN: one seed after "
+            f"another), {e['workers']} workers",
+            f"{'steps/s':<14}" + "".join(f"{c:>10}" for c in PAPER_CONTROLLERS),
         ]
-        header = f"{'steps/s':<14}" + "".join(f"{c:>10}" for c in PAPER_CONTROLLERS)
-        lines.append(header)
         for env, row in e["steps_per_s"].items():
             lines.append(f"{env:<14}" + "".join(f"{row[c]:>10.0f}" for c in PAPER_CONTROLLERS))
-        lengths = ", ".join(f"{k} {v}" for k, v in e["episode_length"].items())
+        lengths = ", ".join(f"{k} {v:g}" for k, v in e["episode_length"].items())
         lines += [
-            f"run overhead (open + close a run): {e['run_overhead_s']:.2f} s",
-            f"assumed mean episode length: {lengths} -> {e['expected_env_steps'] / 1e6:.0f} M "
-            "env steps",
-            f"estimated wall time: {e['expected_hours']:.1f} h "
-            f"(every episode at its cap: {e['upper_bound_hours']:.1f} h)",
+            f"per run: {e['run_overhead_s']:.2f} s to open and close it, "
+            f"{1e3 * e['metric_write_s_per_episode']:.1f} ms per episode of metrics",
+            f"assumed mean episode length: {lengths} -> "
+            f"{e['expected_env_steps'] / 1e6:.2f} M env steps",
+            f"estimated wall time: {e['expected_hours']:.2f} h "
+            f"(every episode at its cap: {e['upper_bound_hours']:.2f} h)",
         ]
     return "\n".join(lines)
 

@@ -29,8 +29,9 @@ and a member of a population compute bit-identical numbers (every operation acts
 member's slice alone, through the same kernels).  ``W_1`` is kept input-major (the torch
 parameter ``hidden.weight`` has strides ``(1, width)``, the NumPy view ``W_1^\\top`` is
 contiguous), so the rank-one update ``W_1 += s\\,g\\,x^\\top`` streams rows of length
-``width`` instead of ``width`` rows of length ``n_obs``; the updates of ``W_1``, ``W_2[a]`` and
-``b_1`` are BLAS ``ger``/``axpy`` calls that modify the parameters in place, one pass each.
+``width``.  The forward pass, Θ1/Θ2 and the step are three compiled loops (numba) over the
+members and hidden units, each one pass over the parameters: no temporaries, no per-call
+overhead of a dozen array operations.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
-from scipy.linalg.blas import get_blas_funcs
+from numba import njit
 from torch import nn
 
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
@@ -131,9 +132,70 @@ class TDTerms(NamedTuple):
     """``∂Q_a(s)/∂b_1 = W_2[a] ⊙ [p > 0]``, shape ``(K, width)``, reused by the step."""
 
 
-def _rowdot(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Row-wise inner products of ``(K, n)`` arrays, one BLAS dot per row."""
-    return (u[:, None, :] @ v[:, :, None])[:, 0, 0]
+_JIT = {"cache": True, "fastmath": {"reassoc", "contract"}}
+"""Compiled once per process (and cached on disk).  ``reassoc`` lets the sums over the
+hidden units run as vectorised partial sums: the same code for every member and every
+population size, so a member's numbers never depend on ``K`` (``tests/test_fast_path.py``)."""
+
+
+@njit(**_JIT)
+def _forward_kernel(w1t, b1, w2, b2, x, p, h, q):
+    """Per member ``k``: ``p = b_1 + Σ_i x_i W_1ᵀ[i]``, ``h = relu(p)``, ``q = W_2 h + b_2``."""
+    n_members, n_obs, width = w1t.shape
+    for k in range(n_members):
+        for j in range(width):
+            p[k, j] = b1[k, j]
+        for i in range(n_obs):
+            xi = x[k, i]
+            for j in range(width):
+                p[k, j] += w1t[k, i, j] * xi
+        for j in range(width):
+            h[k, j] = max(p[k, j], 0.0)
+        for a in range(w2.shape[1]):
+            acc = 0.0
+            for j in range(width):
+                acc += w2[k, a, j] * h[k, j]
+            q[k, a] = acc + b2[k, a]
+
+
+@njit(**_JIT)
+def _td_kernel(w2, x1, p1, h1, x2, p2, h2, a, b, g, theta):
+    """Per member: ``g = W_2[a] ⊙ [p1 > 0]`` and Θ1, Θ2 of the module docstring,
+    ``Θ2``'s hidden-layer sum being ``Σ_j g_j W_2[b, j] [p2_j > 0]``."""
+    for k in range(w2.shape[0]):
+        ak, bk = a[k], b[k]
+        hh = h12 = gg = gg2 = 0.0
+        for j in range(w2.shape[2]):
+            gj = w2[k, ak, j] if p1[k, j] > 0.0 else 0.0
+            g[k, j] = gj
+            hh += h1[k, j] * h1[k, j]
+            h12 += h1[k, j] * h2[k, j]
+            gg += gj * gj
+            gg2 += gj * w2[k, bk, j] if p2[k, j] > 0.0 else 0.0
+        xx = x12 = 0.0
+        for i in range(x1.shape[1]):
+            xx += x1[k, i] * x1[k, i]
+            x12 += x1[k, i] * x2[k, i]
+        theta[k, 0] = hh + 1.0 + (xx + 1.0) * gg
+        theta[k, 1] = (h12 + 1.0 if ak == bk else 0.0) + (x12 + 1.0) * gg2
+
+
+@njit(**_JIT)
+def _sgd_kernel(w1t, b1, w2, b2, x, h, a, scale, g):
+    """Per member, in place: ``W_2[a] += s h``, ``b_2[a] += s``, ``W_1ᵀ[i] += (s x_i) g``,
+    ``b_1 += s g`` with ``s = scale_k``, ``g = ∂Q_a/∂b_1``."""
+    n_members, n_obs, width = w1t.shape
+    for k in range(n_members):
+        s, ak = scale[k], a[k]
+        for j in range(width):
+            w2[k, ak, j] += s * h[k, j]
+        b2[k, ak] += s
+        for i in range(n_obs):
+            sx = s * x[k, i]
+            for j in range(width):
+                w1t[k, i, j] += sx * g[k, j]
+        for j in range(width):
+            b1[k, j] += s * g[k, j]
 
 
 class StackedTwoLayer:
@@ -150,8 +212,6 @@ class StackedTwoLayer:
         self.w1t, self.b1, self.w2, self.b2 = w1t, b1, w2, b2
         self.dtype = w1t.dtype
         self.rows = np.arange(len(w1t))
-        self._blas = get_blas_funcs(("ger", "axpy"), (w1t,))
-        """In-place rank-one update and axpy: one pass over each member's parameters."""
 
     @classmethod
     def from_networks(cls, nets: list[QNetwork]) -> StackedTwoLayer:
@@ -182,22 +242,21 @@ class StackedTwoLayer:
 
     def forward(self, x: np.ndarray) -> StackedForward:
         """``p = W_1 x + b_1``, ``h = relu(p)``, ``Q = W_2 h + b_2`` for inputs ``(K, n_obs)``."""
-        x = np.asarray(x, dtype=self.dtype)
-        p = (x[:, None, :] @ self.w1t)[:, 0, :] + self.b1
-        h = np.maximum(p, 0.0)
-        q = (self.w2 @ h[:, :, None])[:, :, 0] + self.b2
+        x = np.ascontiguousarray(x, dtype=self.dtype)
+        k, width = self.b1.shape
+        p, h = np.empty((k, width), self.dtype), np.empty((k, width), self.dtype)
+        q = np.empty(self.b2.shape, self.dtype)
+        _forward_kernel(self.w1t, self.b1, self.w2, self.b2, x, p, h, q)
         return StackedForward(x, p, h, q)
 
     def td_terms(
         self, f1: StackedForward, a: np.ndarray, f2: StackedForward, b: np.ndarray
     ) -> TDTerms:
         """Θ1 = Θ((x1,a),(x1,a)), Θ2 = Θ((x1,a),(x2,b)) and ``∂Q_a/∂b_1`` (module docstring)."""
-        g = self.w2[self.rows, a] * (f1.p > 0.0)
-        g2 = self.w2[self.rows, b] * (f2.p > 0.0)
-        theta1 = _rowdot(f1.h, f1.h) + 1.0 + (_rowdot(f1.x, f1.x) + 1.0) * _rowdot(g, g)
-        out = np.where(a == b, _rowdot(f1.h, f2.h) + 1.0, 0.0)
-        theta2 = out + (_rowdot(f1.x, f2.x) + 1.0) * _rowdot(g, g2)
-        return TDTerms(theta1, theta2, g)
+        g = np.empty_like(f1.p)
+        theta = np.empty((len(g), 2), self.dtype)
+        _td_kernel(self.w2, f1.x, f1.p, f1.h, f2.x, f2.p, f2.h, _int(a), _int(b), g, theta)
+        return TDTerms(theta[:, 0], theta[:, 1], g)
 
     def ntk(
         self, f1: StackedForward, a: np.ndarray, f2: StackedForward, b: np.ndarray
@@ -205,23 +264,113 @@ class StackedTwoLayer:
         """Θ((x1, a), (x2, b)) per member (module docstring)."""
         g = self.w2[self.rows, a] * (f1.p > 0.0)
         g2 = self.w2[self.rows, b] * (f2.p > 0.0)
-        out = np.where(a == b, _rowdot(f1.h, f2.h) + 1.0, 0.0)
-        return out + (_rowdot(f1.x, f2.x) + 1.0) * _rowdot(g, g2)
+        out = np.where(a == b, np.einsum("kj,kj->k", f1.h, f2.h) + 1.0, 0.0)
+        return out + (np.einsum("ki,ki->k", f1.x, f2.x) + 1.0) * np.einsum("kj,kj->k", g, g2)
 
     def sgd_step(
         self, f: StackedForward, a: np.ndarray, scale: np.ndarray, grad_b1: np.ndarray
     ) -> None:
-        """θ ← θ + scale · ∂Q_a(x)/∂θ per member: the semi-gradient step, scale = α·δ.
+        """θ ← θ + scale · ∂Q_a(x)/∂θ per member, in place: the semi-gradient step with
+        scale = α·δ.  ``grad_b1`` is ``∂Q_a/∂b_1`` at the parameters ``f`` was computed with
+        (:attr:`TDTerms.grad_b1`)."""
+        scale = np.ascontiguousarray(scale, dtype=self.dtype)
+        _sgd_kernel(self.w1t, self.b1, self.w2, self.b2, f.x, f.h, _int(a), scale, grad_b1)
 
-        ``grad_b1`` is ``∂Q_a/∂b_1`` at the parameters ``f`` was computed with
-        (:attr:`TDTerms.grad_b1`).
-        """
-        ger, axpy = self._blas
-        for k, (s, ak) in enumerate(zip(scale.tolist(), a.tolist(), strict=True)):
-            axpy(f.h[k], self.w2[k, ak], a=s)  # W2[a] += s·h        (in place)
-            self.b2[k, ak] += s
-            ger(s, grad_b1[k], f.x[k], a=self.w1t[k].T, overwrite_a=1)  # W1 += s·g xᵀ
-            axpy(grad_b1[k], self.b1[k], a=s)  # b1 += s·g
+
+@njit(**_JIT)
+def _hidden(w1t, b1, x, p):
+    """``p = b_1 + Σ_k x_k W_1ᵀ[k]`` (rows of length ``width``, vectorised)."""
+    p[:] = b1
+    for k in range(w1t.shape[0]):
+        xk = x[k]
+        for j in range(w1t.shape[1]):
+            p[j] += w1t[k, j] * xk
+
+
+@njit(**_JIT)
+def _double_dqn_kernel(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, obs, actions, rewards,
+                       terminated, discount, lr):  # fmt: skip
+    """:func:`double_dqn_step` on the arrays of one online and one target network."""
+    width = w1t.shape[1]
+    gw1t, gb1 = np.zeros_like(w1t), np.zeros_like(b1)
+    gw2, gb2 = np.zeros_like(w2), np.zeros_like(b2)
+    p = np.empty(width)
+    loss = 0.0
+    for i in range(len(actions)):
+        _hidden(w1t, b1, obs[i, 1], p)  # online network at s'_i: Double DQN's action
+        best, q_best = 0, -np.inf
+        for a in range(w2.shape[0]):
+            acc = b2[a]
+            for j in range(width):
+                acc += w2[a, j] * max(p[j], 0.0)
+            if acc > q_best:
+                best, q_best = a, acc
+        _hidden(tw1t, tb1, obs[i, 1], p)  # target network at s'_i, action best
+        q_next = tb2[best]
+        for j in range(width):
+            q_next += tw2[best, j] * max(p[j], 0.0)
+        y = rewards[i] + discount * (1.0 - terminated[i]) * q_next
+        ai = actions[i]
+        _hidden(w1t, b1, obs[i, 0], p)  # online network at s_i
+        q_sa = b2[ai]
+        for j in range(width):
+            q_sa += w2[ai, j] * max(p[j], 0.0)
+        delta = y - q_sa
+        loss += 0.5 * delta * delta
+        gb2[ai] += delta
+        for j in range(width):  # −∂L_i/∂θ = δ_i ∂Q_{a_i}(s_i)/∂θ
+            hj = max(p[j], 0.0)
+            gw2[ai, j] += delta * hj
+            p[j] = delta * w2[ai, j] if hj > 0.0 else 0.0
+            gb1[j] += p[j]
+        for k in range(w1t.shape[0]):
+            xk = obs[i, 0, k]
+            for j in range(width):
+                gw1t[k, j] += xk * p[j]
+    w1t += lr * gw1t
+    b1 += lr * gb1
+    w2 += lr * gw2
+    b2 += lr * gb2
+    return loss
+
+
+def double_dqn_step(
+    online: FastTwoLayer,
+    target: FastTwoLayer,
+    obs: np.ndarray,
+    actions: np.ndarray,
+    rewards: np.ndarray,
+    next_obs: np.ndarray,
+    terminated: np.ndarray,
+    discount: float,
+    lr: float,
+) -> float:
+    """One SGD step of Double DQN on a minibatch, gradients written out by hand; returns
+    the loss before the step.
+
+    .. math::  \\mathcal L = \\tfrac12 \\sum_i \\delta_i^2,\\qquad
+               \\delta_i = r_i + \\gamma (1-d_i)\\,\\bar Q(s'_i, \\arg\\max_a Q(s'_i, a))
+               - Q(s_i, a_i),
+
+    targets held constant; ``−∂L/∂θ = Σ_i δ_i ∂Q_{a_i}(s_i)/∂θ`` with the per-sample
+    gradients of the module docstring, all at the current parameters, then
+    ``θ ← θ + lr·(−∂L/∂θ)`` (torch's SGD step on L).  One compiled pass per sample, no
+    ``(batch, width)`` temporaries.
+    """
+    dt = online.dtype
+    pairs = np.stack([obs, next_obs], axis=1).astype(dt, copy=False)
+    return float(
+        _double_dqn_kernel(
+            online.stack.w1t[0], online.b1, online.w2, online.b2,
+            target.stack.w1t[0], target.b1, target.w2, target.b2,
+            np.ascontiguousarray(pairs), _int(actions), rewards.astype(dt, copy=False),
+            terminated.astype(dt, copy=False), float(discount), float(lr),
+        )
+    )  # fmt: skip
+
+
+def _int(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.int64)
 
 
 class FastTwoLayer:
@@ -268,46 +417,6 @@ class FastTwoLayer:
         if grad_b1 is None:
             grad_b1 = (self.w2[a] * (f.p > 0.0))[None]
         self.stack.sgd_step(_stacked(f), np.array([a]), np.array([scale]), grad_b1)
-
-    def forward_batch(self, x: np.ndarray) -> Forward:
-        """Forward passes at the rows of ``x`` ``(B, n_obs)``: fields of shape ``(B, ·)``.
-
-        ``p`` is not kept (``p > 0`` iff ``h > 0``); the field holds ``h``.
-        """
-        x = np.asarray(x, dtype=self.dtype)
-        h = x @ self.stack.w1t[0]
-        h += self.b1
-        np.maximum(h, 0.0, out=h)
-        q = h @ self.w2.T
-        q += self.b2
-        return Forward(x, h, h, q)
-
-    def minibatch_step(
-        self, f: Forward, actions: np.ndarray, target: np.ndarray, lr: float
-    ) -> float:
-        """One SGD step on ``L = ½ Σ_i (target_i − Q_{a_i}(x_i))²`` (targets held constant)
-        from the batch forward pass ``f``; returns ``L`` before the step.
-
-        With ``δ_i = target_i − Q_{a_i}(x_i)`` and ``G`` the ``(B, n_actions)`` matrix with
-        ``G[i, a_i] = δ_i``, ``−∂L/∂θ`` is (module docstring, summed over the batch)
-
-        .. math::  \\Delta W_2 = G^\\top H,\\ \\Delta b_2 = \\textstyle\\sum_i G_i,\\quad
-                   D = (G W_2)\\odot[P>0],\\ \\Delta W_1^\\top = X^\\top D,\\
-                   \\Delta b_1 = \\textstyle\\sum_i D_i,
-
-        all taken at the current parameters, then ``θ ← θ + lr·Δθ`` (torch's SGD step on L).
-        """
-        rows = np.arange(len(actions))
-        delta = target - f.q[rows, actions]
-        g = np.zeros_like(f.q)
-        g[rows, actions] = delta
-        d = g @ self.w2
-        d *= f.h > 0.0
-        self.w2 += lr * (g.T @ f.h)
-        self.b2 += lr * g.sum(axis=0)
-        self.stack.w1t[0] += lr * (f.x.T @ d)
-        self.b1 += lr * d.sum(axis=0)
-        return 0.5 * float(delta @ delta)
 
 
 def _stacked(f: Forward) -> StackedForward:

@@ -15,8 +15,10 @@ design (and one cache entry).  The nominal point is the median (Θ1, ρ).
 Transitions whose greedy next action differs from ``a`` have Θ2 ≈ 0 at initialisation (the
 output-layer term vanishes and the hidden-layer term averages out): about half of them.
 They leave Q2 unmoved by the update (Q̇2 = Θ2·(…) ≈ 0) and are left out of the ratio range
-(``ratio_floor``); their share is reported.  At Θ2 = 0 exactly the linear model's Q2 mode
-is uncontrollable (eigenvalue 0), so no controller makes that point asymptotically stable.
+(``ratio_floor``); their share is reported.  At Θ2 = 0 exactly Q2 does not move at all: on the
+paper's plant its mode (eigenvalue 0) is uncontrollable, so no controller makes that point
+asymptotically stable; on the gradient-flow plant it is the conserved quantity
+``Θ2 Q1 − Θ1 Q2 = −Θ1 Q2`` that every loop keeps constant (:mod:`cdqn.control.plant`).
 
 This module uses torch; :mod:`cdqn.control` does not.
 """

@@ -30,6 +30,7 @@ from hydra.types import RunMode
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from cdqn.agents import Agent, make_agent
 from cdqn.callbacks import record_job
@@ -116,14 +117,15 @@ def run(cfg: DictConfig, progress: bool = True) -> RunResult:
         return run_population(cfg, progress).summary()
     conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
     validate(conf)
-    uri = resolve_tracking_uri(conf.tracking.uri)
-    if uri.startswith("sqlite:///") or conf.tracking.skip_finished:  # sweeps (cdqn.sweep)
-        check_tracking(uri, conf.tracking.timeout)
-        ensure_store(uri, conf.tracking.experiment)  # a fresh SQLite store, once
-        if conf.tracking.skip_finished and (done := finished_elsewhere(cfg, uri)) is not None:
-            return RunResult(done[0], "FINISHED", done[1], "skipped: already FINISHED")
-    env = make_env(conf.env)
+    env = make_env(conf.env)  # refuses unknown ids, continuous actions before any store is touched
     try:
+        uri = resolve_tracking_uri(conf.tracking.uri)
+        if uri.startswith("sqlite:///") or conf.tracking.skip_finished:  # sweeps (cdqn.sweep)
+            check_tracking(uri, conf.tracking.timeout)
+            ensure_store(uri, conf.tracking.experiment)  # a fresh SQLite store, once
+            if conf.tracking.skip_finished and (done := finished_elsewhere(cfg, uri)) is not None:
+                env.close()
+                return RunResult(done[0], "FINISHED", done[1], "skipped: already FINISHED")
         check_tracking(uri, conf.tracking.timeout)
         job = build(conf, env)
     except BaseException:
@@ -205,7 +207,13 @@ def resume(cfg: DictConfig, progress: bool = True) -> RunResult:
                 f"resume={run_id}: the run has no {CONFIG_ARTIFACT} artifact, so it cannot be "
                 "rebuilt (was it started by cdqn.train?)"
             ) from None
-        stored = OmegaConf.merge(OmegaConf.structured(Config), OmegaConf.load(path))
+        try:
+            stored = OmegaConf.merge(OmegaConf.structured(Config), OmegaConf.load(path))
+        except OmegaConfBaseException as err:
+            raise ConfigError(
+                f"resume={run_id}: its {CONFIG_ARTIFACT} does not fit this version of cdqn "
+                f"({' '.join(str(err).split())})"
+            ) from None
     stored.resume = None
     stored.tracking = cfg.tracking
     conf: Config = OmegaConf.to_object(stored)  # type: ignore[assignment]

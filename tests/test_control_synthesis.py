@@ -12,7 +12,7 @@ from omegaconf import OmegaConf
 
 from cdqn.config import Config
 from cdqn.control.box import NTKBox
-from cdqn.control.certificate import ControllerMatrices, certify
+from cdqn.control.certificate import ControllerMatrices, certify, max_real_poles
 from cdqn.control.design import (
     box_from_config,
     design_controller,
@@ -128,33 +128,88 @@ def _fs_weights() -> FixedStructureWeights:
     )
 
 
-def test_fixed_structure_result_no_worse_than_its_start() -> None:
+STABILISING = {"gradient_flow": (-0.379, 2.82, 0.1937), "paper": (0.379, -2.82, -0.1937)}
+"""The research gains as published stabilise the gradient-flow plant; negated, the paper's."""
+
+
+@pytest.mark.parametrize("plant", ["gradient_flow", "paper"])
+def test_fixed_structure_result_no_worse_than_its_start(plant: str) -> None:
     box = NTKBox((200.0, 500.0), (0.8, 1.2), (316.0, 316.0))
     pts = box.sample(30, 0)
-    start = (0.379, -2.82, -0.1937)  # the research gains, negated: stabilising
-    res = tune_fixed_structure(pts, 1.0, _fs_weights(), [start], margin=0.05, lr=5e-5, max_iter=150)
-    loops = PerformanceLoops(pts, 1.0, _fs_weights(), np.logspace(-3, 6, 50))
+    start = STABILISING[plant]
+    res = tune_fixed_structure(
+        pts, 1.0, _fs_weights(), [start], margin=0.05, lr=5e-5, max_iter=150, plant=plant
+    )
+    loops = PerformanceLoops(pts, 1.0, _fs_weights(), np.logspace(-3, 6, 50), plant)
     assert res.worst_hinf <= float(np.max(loops.exact_norms(start))) + 1e-12
     assert res.objective <= res.start_objective
-    assert certify(
-        ControllerMatrices.static(*res.gains), box, pts, (7, 7), 1.0, 0.05, lr=5e-5
-    ).passed
+    K = ControllerMatrices.static(*res.gains)
+    assert certify(K, box, pts, (7, 7), 1.0, 0.05, lr=5e-5, plant=plant).passed
 
 
-def test_fixed_structure_from_unstable_start_reaches_stability() -> None:
+@pytest.mark.parametrize("plant", ["gradient_flow", "paper"])
+def test_fixed_structure_from_unstable_start_reaches_stability(plant: str) -> None:
     box = NTKBox((200.0, 500.0), (0.8, 1.2), (316.0, 316.0))
     pts = box.sample(20, 0)
-    starts = default_starts(1.2, 1.0, (-0.379, 2.82, 0.1937), 2, seed=0)
-    res = tune_fixed_structure(pts, 1.0, _fs_weights(), starts, margin=0.05, lr=5e-5, max_iter=150)
+    other = STABILISING["paper" if plant == "gradient_flow" else "gradient_flow"]
+    starts = default_starts(1.2, 1.0, other, 2, seed=0, plant=plant)
+    res = tune_fixed_structure(
+        pts, 1.0, _fs_weights(), starts, margin=0.05, lr=5e-5, max_iter=150, plant=plant
+    )
     assert res.start_objective == np.inf
-    assert certify(ControllerMatrices.static(*res.gains), box, pts, (7, 7), 1.0, 0.05).passed
+    K = ControllerMatrices.static(*res.gains)
+    assert certify(K, box, pts, (7, 7), 1.0, 0.05, plant=plant).passed
+
+
+def test_default_starts_lie_in_the_stabilising_region() -> None:
+    box = NTKBox((100.0, 800.0), (0.8, 1.2), (282.8, 282.8))
+    pts = box.sample(50, 0)
+    for plant in ("gradient_flow", "paper"):
+        starts = default_starts(1.2, 1.0, (0.0, 0.0, 0.0), 20, seed=3, plant=plant)[1:]
+        for k in starts:
+            re = max_real_poles(pts, 1.0, ControllerMatrices.static(*k), plant)
+            assert re.max() < 0, (plant, k)
+
+
+def test_performance_loops_reduce_to_the_minimal_part() -> None:
+    """On the gradient-flow plant T_i drops the structural zero; the transfer function is that
+    of the full (unreduced) loop."""
+    pts = np.array([[300.0, 330.0], [150.0, 130.0]])
+    omega = np.array([0.5, 20.0, 4e3])
+    gains = (-0.379, 2.82, 0.1937)
+    loops = PerformanceLoops(pts, 1.0, _fs_weights(), omega)
+    A, B, C, D = loops.matrices(gains)
+    assert np.all(np.linalg.eigvals(A).real < 0)
+    n = A.shape[1] + 1  # full order
+    for i, t2 in enumerate(pts[:, 1]):
+        # rebuild the full loop from the paper-plant loop plus u into Q2 through Θ2
+        full = PerformanceLoops(pts[i : i + 1], 1.0, _fs_weights(), omega, "paper")
+        Af, Bf, Cf, _ = full.matrices(gains)
+        Af, Bf, Cf = Af[0].copy(), Bf[0].copy(), Cf[0]
+        F = np.zeros(n)
+        F[:3] = -gains[0], -gains[1], gains[2]
+        G = np.array([0.0, 0.0, -gains[0] * 0.2, -gains[1] * 0.5])
+        Af[1] += t2 * F
+        Bf[1] += t2 * G
+        ev = np.linalg.eigvals(Af)
+        assert np.min(np.abs(ev)) < 1e-8 * np.abs(Af).max()
+        for w in omega:
+            Hf = Cf @ np.linalg.solve(1j * w * np.eye(n) - Af, Bf)
+            Hr = C[i] @ np.linalg.solve(1j * w * np.eye(n - 1) - A[i], B[i])
+            np.testing.assert_allclose(Hr, Hf, rtol=1e-8, atol=1e-14)
 
 
 # ------------------------------------------------------------------------------ errors
 
 
 def test_error_infeasible_box_for_the_learning_rate() -> None:
-    conf = _conf("cartpole", "hinf_f", ["weights.theta_bounds.theta1=[200.0,50000.0]"])
+    """On the paper's plant; the gradient-flow plant has no such bound (its fast mode can be
+    slowed down by the gains over the whole box)."""
+    conf = _conf(
+        "cartpole",
+        "hinf_f",
+        ["weights.theta_bounds.theta1=[200.0,50000.0]", "controller.synthesis.plant=paper"],
+    )
     inputs = design_inputs(conf.controller, conf.weights, 1.0, conf.train.lr)
     with pytest.raises(DesignError, match=r"infeasible NTK box: α·γ·ρ_max·Θ1_max = .* >= 2"):
         design_controller(inputs)
@@ -167,8 +222,11 @@ def test_error_invalid_box_from_config() -> None:
 
 
 def test_error_failing_certificate_never_a_zero_gain() -> None:
-    """The dynamic design on the wide measured CartPole box leaves part of it unstable."""
-    conf = _conf("cartpole", "hinf", ["controller.synthesis.cache=false"])
+    """On the paper's plant the dynamic design for the wide measured CartPole box leaves part
+    of it unstable."""
+    conf = _conf(
+        "cartpole", "hinf", ["controller.synthesis.cache=false", "controller.synthesis.plant=paper"]
+    )
     inputs = design_inputs(conf.controller, conf.weights, 1.0, conf.train.lr)
     with pytest.raises(DesignError, match="failed its certificate: .*unstable"):
         design_controller(inputs)
@@ -201,6 +259,10 @@ def test_error_unknown_kind_and_measured_box() -> None:
     conf = _conf("cartpole", "h2")
     with pytest.raises(DesignError, match="synthesis designs hinf, hinf_f"):
         design_inputs(conf.controller, conf.weights, 1.0, 5e-5)
+    conf = _conf("cartpole", "hinf_f", ["controller.synthesis.plant=exact"])
+    inputs = design_inputs(conf.controller, conf.weights, 1.0, 5e-5)
+    with pytest.raises(DesignError, match="synthesis.plant='exact': allowed gradient_flow, paper"):
+        design_controller(inputs)
     samples = np.column_stack([np.linspace(100, 500, 50), np.linspace(-10, -1, 50)])
     with pytest.raises(DesignError, match="no transition has Θ2/Θ1"):
         summarise(samples, (0.02, 0.98))
@@ -230,6 +292,8 @@ def test_measured_box_summary() -> None:
         ("cartpole", "hinf_f"),
         ("acrobot", "hinf_f"),
         ("mountaincar", "hinf_f"),
+        ("cartpole", "hinf"),
+        ("acrobot", "hinf"),
         ("mountaincar", "hinf"),
         ("cartpole_pole", "hinf"),
     ],
@@ -238,7 +302,28 @@ def test_shipped_designs_pass_their_certificate(cache: Path, env: str, kind: str
     (record, _, _), _ = _design(cache, env, kind)
     cert = record["certificate"]
     assert cert["passed"] and cert["share_stable"] == 1.0, cert["reason"]
+    assert record["plant"] == cert["plant"] == "gradient_flow"
     assert json.loads(json.dumps(record)) == record
+    if kind == "hinf_f":  # stable on the plant training realises: k3 > 0 and
+        k1, k2, k3 = record["gains"]  # (1 + k1) > (γ − k2) Θ2/Θ1 over the box
+        assert k3 > 0 and 1 + k1 > (1.0 - k2) * record["theta_bounds"]["ratio"][1]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("env", ["cartpole", "mountaincar"])
+def test_paper_plant_designs_still_certify_on_the_paper_plant(cache: Path, env: str) -> None:
+    (record, _, _), _ = _design(cache, env, "hinf_f", ["controller.synthesis.plant=paper"])
+    assert record["certificate"]["passed"] and record["plant"] == "paper"
+    k1, k2, k3 = record["gains"]
+    assert k3 < 0  # the paper plant's sign; unstable on the gradient-flow plant
+    box = NTKBox(
+        tuple(record["theta_bounds"]["theta1"]),
+        tuple(record["theta_bounds"]["ratio"]),
+        tuple(record["nominal"]),
+    )
+    assert not certify(
+        ControllerMatrices.static(k1, k2, k3), box, box.sample(20, 0), (5, 5), 1.0
+    ).passed
 
 
 def test_measured_box_of_the_runs_network() -> None:

@@ -138,6 +138,7 @@ def test_a_restarted_population_trains_only_the_missing_seeds(
     assert len(_runs(tracking_uri)) == 3
 
 
+@pytest.mark.slow
 def test_parallel_jobs_can_open_a_fresh_sqlite_store(tmp_path: Path) -> None:
     """Three processes create the same fresh store and experiment at once (unguarded, the
     first migration of a fresh SQLite store fails in all but one and corrupts it)."""

@@ -41,6 +41,7 @@ def test_cli_writes_design_and_plots(tmp_path: Path) -> None:
     )
     assert proc.returncode == 0, proc.stderr
     assert "certificate: PASSED" in proc.stdout and "achieved γ" in proc.stdout
+    assert "learning plant: gradient_flow" in proc.stdout
     record = json.loads((out / "controller.json").read_text())
     for key in ("kind", "A", "B", "C", "D", "theta_bounds", "discount", "gamma"):
         assert key in record
@@ -66,6 +67,7 @@ def test_cli_error_exits_with_reason(tmp_path: Path) -> None:
             "controller=hinf_f",
             f"out={tmp_path}",
             "weights.theta_bounds.theta1=[200.0,50000.0]",
+            "controller.synthesis.plant=paper",
         ],
         cwd=REPO,
         capture_output=True,
@@ -81,11 +83,18 @@ def test_h2_report(tmp_path: Path) -> None:
     assert "gain-scheduled LQR" in text
     record = json.loads((tmp_path / "controller.json").read_text())
     assert record["kind"] == "h2" and record["worst_pole"] < 0
+    assert record["plant"] == "gradient_flow"
 
 
 def test_in_process_design_error(tmp_path: Path) -> None:
     cfg = _cfg(
-        ["env=cartpole", "controller=hinf", f"out={tmp_path}", "controller.synthesis.cache=false"]
+        [
+            "env=cartpole",
+            "controller=hinf",
+            f"out={tmp_path}",
+            "controller.synthesis.cache=false",
+            "controller.synthesis.plant=paper",
+        ]
     )
     with pytest.raises(DesignError, match="failed its certificate"):
         synthesize(cfg)

@@ -24,7 +24,7 @@ import torch
 from cdqn.agents.base import EpsilonGreedy, StepRecord
 from cdqn.agents.replay import Batch, ReplayBuffer
 from cdqn.config import ControllerConfig, TrainConfig
-from cdqn.network import FastTwoLayer, QNetwork
+from cdqn.network import FastTwoLayer, QNetwork, double_dqn_step
 
 
 class DDQNAgent:
@@ -106,14 +106,11 @@ class DDQNAgent:
 
     def _fast_learn(self, b: Batch) -> float:
         """:meth:`_learn` with the two-layer network's gradients written out by hand
-        (:meth:`cdqn.network.FastTwoLayer.minibatch_step`)."""
-        n = len(b.actions)
-        online = self.fast.forward_batch(np.concatenate([b.obs, b.next_obs]))  # one product
-        best = np.argmax(online.q[n:], axis=1)  # Double DQN: the online network's argmax
-        q_next = self.fast_target.forward_batch(b.next_obs).q[np.arange(n), best]
-        target = b.rewards + self.discount * (1.0 - b.terminated) * q_next
-        f = type(online)(*(field[:n] for field in online))
-        return self.fast.minibatch_step(f, b.actions, target, self.lr)
+        (:func:`cdqn.network.double_dqn_step`)."""
+        return double_dqn_step(
+            self.fast, self.fast_target, b.obs, b.actions, b.rewards, b.next_obs,
+            b.terminated, self.discount, self.lr,
+        )  # fmt: skip
 
     def state_dict(self) -> dict[str, Any]:
         return {

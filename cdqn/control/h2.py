@@ -5,7 +5,8 @@ For the step's NTK values (Θ1, Θ2) the LQR problem
 .. math::  \\min_u \\tfrac12\\int_0^\\infty x_a^\\top W_x x_a + u^\\top W_c u\\,dt,
            \\qquad \\dot x_a = A(\\Theta)\\,x_a + B_u(\\Theta)\\,u
 
-of the augmented plant (:func:`cdqn.control.plant.augmented_plant`) is solved at every
+of the augmented plant with the paper's ``B_u = [Θ1, 0, 0]ᵀ``
+(:func:`cdqn.control.plant.augmented_plant` with ``plant="paper"``) is solved at every
 training step, so it has to be cheap.  :func:`lqr_gain` solves any single-input LQR
 problem through the stable invariant subspace of the Hamiltonian
 
@@ -162,7 +163,7 @@ def h2_gains_reference(
 ) -> tuple[float, float, float]:
     """(k1, k2, k3) through the Hamiltonian eigendecomposition (:func:`lqr_gain`); the
     reference the closed form is tested against."""
-    plant = augmented_plant(theta1, theta2, discount)
+    plant = augmented_plant(theta1, theta2, discount, "paper")
     K = lqr_gain(plant.A, plant.B_u, np.asarray(w_x, dtype=float), float(w_c))
     return float(K[0]), float(K[1]), float(-K[2])
 

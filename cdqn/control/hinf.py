@@ -2,7 +2,9 @@
 fixed-γ H∞ routine, balanced reduction (paper Sec. 4.2).
 
 Generalized plant (all blocks SISO unless marked; ``Q = [Q1, Q2]`` the learning plant's
-states, ``G`` the learning plant of :func:`cdqn.control.plant.io_plant`)::
+outputs, ``G`` the minimal realisation of the learning plant of ``synthesis.plant``,
+:func:`cdqn.control.plant.minimal_io_plant`: the paper's two-state plant as it is, the
+gradient-flow plant as the first-order ``ẏ = (γΘ2 − Θ1) y + ‖b‖(u + r)``, ``Q = b̂ y``)::
 
              d (2) ──► W_Δ ─────────────┐                              z_d = Q   (to Δ)
              n (2) ──► W_n ───────────┐ │                              z_n = Q   (to Δ_n)
@@ -41,9 +43,14 @@ Regularisation (each needed by SB10AD's assumptions A1–A4; sizes from
 * ``ε_u``: a performance output ``ε_u·u`` (A2: ``W_u`` is strictly proper, so ``D12 = 0``
   without it).
 * ``ε_s``: sensor noise ``ε_s·w_s`` on the integrated error (A2: ``D21`` full row rank).
-* ``ε_q``: process noise ``ε_q·w_q`` into both Q states (A4: with γ = 1 the plant's mode at
-  s = 0 has left eigenvector ``[Θ2, −Θ1]``, orthogonal to the reward input ``[Θ1, Θ2]``,
-  so it is unreachable from every exogenous input).
+* ``ε_q``: process noise ``ε_q·w_q`` into Q1 and Q2 (A4: with γ = 1 the paper plant's mode
+  at s = 0 has left eigenvector ``[Θ2, −Θ1]``, orthogonal to the reward input
+  ``[Θ1, Θ2]``, so it is unreachable from every exogenous input).  On the gradient-flow
+  plant that mode is unreachable from ``u`` as well (``B_u = [Θ1, Θ2]``): ``(A, B_2)`` is not
+  stabilisable and SB10AD would refuse, so the plant enters in its minimal realisation,
+  which drops exactly this mode (it changes no transfer function from ``[w, u]`` to
+  ``[z, y]``; the certificate treats the mode as the marginal line of equilibria it is,
+  :mod:`cdqn.control.certificate`); ``ε_q w_q`` then enters along ``b̂``.
 
 ``D11 = 0`` by construction: SB10AD refuses problems (INFO=6) when ``D11`` couples inputs
 that also feed the measurements.

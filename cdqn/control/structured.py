@@ -10,7 +10,10 @@ tracking error and control is
            \\begin{bmatrix} W_p\\,x_e \\\\ W_u\\,u\\end{bmatrix},\\qquad
            \\dot x_e = W_r r + \\gamma W_{\\hat Q}\\hat Q_2 - Q_1,
 
-(the reward enters the plant through ``W_r`` as well) and the controller and the integrator
+(the reward enters the plant through ``W_r`` as well; the learning plant is
+``synthesis.plant``, and on the gradient-flow plant, where ``u`` moves Q1 and Q2, ``T_i`` is
+evaluated on its minimal part, :func:`cdqn.control.plant.reduction_basis`, which drops the
+structural zero and keeps the transfer function) and the controller and the integrator
 read ``Q̃ = Q + diag(0.2, 0.5)·n``, the measurement-noise block of the paper (the noise
 channel is what penalises high gains: ``W_u`` alone rolls off before a high-gain loop's
 bandwidth).  The tuning problem is
