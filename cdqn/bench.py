@@ -15,7 +15,10 @@ step on the same network with torch autograd (forward on s, forward on s', TD lo
 backward, SGD step) plus the environment step.  Each controller's cost is printed as a
 ratio to the floor's (``ratio_to_floor = floor steps/s ÷ controller steps/s``; ≤ 1 means
 no slower than the floor).  Numbers are medians over ``--repeats`` interleaved rounds, so
-that other load on the machine affects all of them alike.
+that other load on the machine affects all of them alike, in CPU seconds of this process
+(``--clock wall`` for wall-clock seconds).  The recorder's batched writes of the episode
+metrics to the store cost the same per episode in every mode; they are timed apart (wall
+clock), printed below the table and included in the estimate.
 
 The population section trains ``K`` seeds as one batch (:mod:`cdqn.population`) and
 reports member-steps per second against the single run's steps per second of the same
@@ -23,10 +26,12 @@ controller (the throughput of ``K`` sequential runs); its ``speedup`` is the rat
 
 The estimate section measures the throughput of every environment and controller of the
 paper's sweep (populations of 10 for the controlled agents, Double DQN one seed after
-another), adds the measured cost of opening and closing a run, and schedules the sweep's
-12 jobs on ``--workers`` parallel workers in launch order (Hydra's joblib launcher):
+another), adds the measured costs of opening and closing a run and of writing metrics and
+signals, and schedules the sweep's 12 jobs on ``--workers`` parallel workers in launch order
+(Hydra's joblib launcher):
 
-    wall ≈ makespan over jobs of  Σ_seeds (episodes × L_env / steps_per_s + run overhead)
+    wall ≈ makespan over jobs of  Σ_seeds (episodes × L_env × (1 / steps_per_s + signal write)
+                                         + episodes × metric write + run overhead)
 
 ``L_env`` is the mean episode length over training, an assumption stated in the output
 (``--episode-lengths``); the upper bound uses every episode at its cap.
@@ -347,11 +352,17 @@ def estimate_paper_sweep(
                 metric.append(measured.metric_write_s / measured.episodes)
     per_run = _median(overhead)
     metric_s = _median(metric)
+    signal_s = signal_write_seconds_per_step(uri)
     jobs: dict[str, list[float]] = {"expected": [], "upper": []}
     for env in PAPER_ENVS:
         for ctrl in PAPER_CONTROLLERS:
             for kind, length in (("expected", lengths[env]), ("upper", EPISODE_CAP[env])):
-                run_s = episodes * (length / rates[env][ctrl] + metric_s) + per_run
+                steps_per_run = episodes * length
+                run_s = (
+                    steps_per_run * (1.0 / rates[env][ctrl] + signal_s)
+                    + episodes * metric_s
+                    + per_run
+                )
                 jobs[kind].append(PAPER_SEEDS * run_s)
     total_steps = sum(
         PAPER_SEEDS * episodes * lengths[e] * len(PAPER_CONTROLLERS) for e in PAPER_ENVS
@@ -360,6 +371,7 @@ def estimate_paper_sweep(
         "steps_per_s": rates,
         "run_overhead_s": per_run,
         "metric_write_s_per_episode": metric_s,
+        "signal_write_s_per_step": signal_s,
         "episodes": episodes,
         "episode_length": lengths,
         "episode_cap": dict(EPISODE_CAP),
@@ -368,6 +380,21 @@ def estimate_paper_sweep(
         "expected_hours": makespan(jobs["expected"], workers) / 3600,
         "upper_bound_hours": makespan(jobs["upper"], workers) / 3600,
     }
+
+
+def signal_write_seconds_per_step(uri: str, rows: int = 100_000) -> float:
+    """Wall-clock seconds per step of writing a run's per-step signals at its end
+    (``signals/steps.parquet`` and ``signals/fft.parquet``), from ``rows`` synthetic rows."""
+    recorder = Recorder.start(uri, "bench", "bench-signals", {}, {})
+    signals = SignalBuffer()
+    table = np.random.default_rng(0).normal(size=(rows, 10))
+    table[:, 0], table[:, 1] = np.arange(rows) // 150, np.arange(rows) % 150
+    signals.extend(table)
+    t0 = time.perf_counter()
+    recorder.log_signals(signals, 5e-5)
+    seconds = time.perf_counter() - t0
+    recorder.finish()
+    return seconds / rows
 
 
 def _overrides(env: str, controller: str, width: int, uri: str) -> list[str]:
@@ -388,7 +415,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--env", default="cartpole", help="env config (default cartpole)")
     parser.add_argument("--controllers", default=",".join(CONTROLLERS))
     parser.add_argument("--width", type=int, default=2500, help="hidden units (paper: 2500)")
-    parser.add_argument("--steps", type=int, default=3000, help="timed steps per measurement")
+    parser.add_argument("--steps", type=int, default=5000, help="timed steps per measurement")
     parser.add_argument(
         "--warmup", type=int, default=1200, help="untimed steps first (> DDQN's learning_starts)"
     )
@@ -530,11 +557,13 @@ def format_report(r: dict[str, Any]) -> str:
         lengths = ", ".join(f"{k} {v:g}" for k, v in e["episode_length"].items())
         lines += [
             f"per run: {e['run_overhead_s']:.2f} s to open and close it, "
-            f"{1e3 * e['metric_write_s_per_episode']:.1f} ms per episode of metrics",
+            f"{1e3 * e['metric_write_s_per_episode']:.1f} ms per episode of metrics, "
+            f"{1e6 * e['signal_write_s_per_step']:.1f} µs per step of signals",
             f"assumed mean episode length: {lengths} -> "
             f"{e['expected_env_steps'] / 1e6:.2f} M env steps",
-            f"estimated wall time: {e['expected_hours']:.2f} h "
-            f"(every episode at its cap: {e['upper_bound_hours']:.2f} h)",
+            f"estimated wall time: {e['expected_hours']:.2f} h = "
+            f"{60 * e['expected_hours']:.1f} min (every episode at its cap: "
+            f"{e['upper_bound_hours']:.2f} h)",
         ]
     return "\n".join(lines)
 

@@ -139,10 +139,11 @@ population size, so a member's numbers never depend on ``K`` (``tests/test_fast_
 
 
 @njit(**_JIT)
-def _forward_kernel(w1t, b1, w2, b2, x, p, h, q):
-    """Per member ``k``: ``p = b_1 + Σ_i x_i W_1ᵀ[i]``, ``h = relu(p)``, ``q = W_2 h + b_2``."""
-    n_members, n_obs, width = w1t.shape
-    for k in range(n_members):
+def _forward_kernel(w1t, b1, w2, b2, x, rows, p, h, q):
+    """Per member ``k`` in ``rows``: ``p = b_1 + Σ_i x_i W_1ᵀ[i]``, ``h = relu(p)``,
+    ``q = W_2 h + b_2``."""
+    n_obs, width = w1t.shape[1], w1t.shape[2]
+    for k in rows:
         for j in range(width):
             p[k, j] = b1[k, j]
         for i in range(n_obs):
@@ -181,21 +182,35 @@ def _td_kernel(w2, x1, p1, h1, x2, p2, h2, a, b, g, theta):
 
 
 @njit(**_JIT)
-def _sgd_kernel(w1t, b1, w2, b2, x, h, a, scale, g):
+def _sgd_kernel(w1t, b1, w2, b2, x, h, a, scale, g, x2, p2, p_next, h_next, q_next):
     """Per member, in place: ``W_2[a] += s h``, ``b_2[a] += s``, ``W_1ᵀ[i] += (s x_i) g``,
-    ``b_1 += s g`` with ``s = scale_k``, ``g = ∂Q_a/∂b_1``."""
+    ``b_1 += s g`` with ``s = scale_k``, ``g = ∂Q_a/∂b_1``; then the forward pass at ``x2``
+    with the new parameters from the one with the old parameters (``p2``):
+    ``p' = p2 + s (x·x2 + 1) g`` (exact in real arithmetic), ``h' = relu(p')``,
+    ``q' = W_2 h' + b_2``."""
     n_members, n_obs, width = w1t.shape
     for k in range(n_members):
         s, ak = scale[k], a[k]
         for j in range(width):
             w2[k, ak, j] += s * h[k, j]
         b2[k, ak] += s
+        xx2 = 0.0
         for i in range(n_obs):
             sx = s * x[k, i]
+            xx2 += x[k, i] * x2[k, i]
             for j in range(width):
                 w1t[k, i, j] += sx * g[k, j]
         for j in range(width):
             b1[k, j] += s * g[k, j]
+        c = s * (xx2 + 1.0)
+        for j in range(width):
+            p_next[k, j] = p2[k, j] + c * g[k, j]
+            h_next[k, j] = max(p_next[k, j], 0.0)
+        for a2 in range(w2.shape[1]):
+            acc = 0.0
+            for j in range(width):
+                acc += w2[k, a2, j] * h_next[k, j]
+            q_next[k, a2] = acc + b2[k, a2]
 
 
 class StackedTwoLayer:
@@ -240,13 +255,24 @@ class StackedTwoLayer:
             net.out.weight.copy_(torch.from_numpy(self.w2[k]))
             net.out.bias.copy_(torch.from_numpy(self.b2[k]))
 
-    def forward(self, x: np.ndarray) -> StackedForward:
-        """``p = W_1 x + b_1``, ``h = relu(p)``, ``Q = W_2 h + b_2`` for inputs ``(K, n_obs)``."""
+    def forward(self, x: np.ndarray, reuse: StackedForward | None = None) -> StackedForward:
+        """``p = W_1 x + b_1``, ``h = relu(p)``, ``Q = W_2 h + b_2`` for inputs ``(K, n_obs)``.
+
+        ``reuse``: a forward pass at the current parameters (from :meth:`sgd_step`); its rows
+        whose input equals ``x`` are taken as they are, the others computed into it.
+        """
         x = np.ascontiguousarray(x, dtype=self.dtype)
-        k, width = self.b1.shape
-        p, h = np.empty((k, width), self.dtype), np.empty((k, width), self.dtype)
-        q = np.empty(self.b2.shape, self.dtype)
-        _forward_kernel(self.w1t, self.b1, self.w2, self.b2, x, p, h, q)
+        if reuse is None:
+            k, width = self.b1.shape
+            p, h = np.empty((k, width), self.dtype), np.empty((k, width), self.dtype)
+            q = np.empty(self.b2.shape, self.dtype)
+            rows = self.rows
+        else:
+            rows = np.flatnonzero((x != reuse.x).any(axis=1))
+            if not len(rows):
+                return reuse
+            p, h, q = reuse.p, reuse.h, reuse.q  # rows of ``reuse`` that changed: in place
+        _forward_kernel(self.w1t, self.b1, self.w2, self.b2, x, rows, p, h, q)
         return StackedForward(x, p, h, q)
 
     def td_terms(
@@ -268,13 +294,22 @@ class StackedTwoLayer:
         return out + (np.einsum("ki,ki->k", f1.x, f2.x) + 1.0) * np.einsum("kj,kj->k", g, g2)
 
     def sgd_step(
-        self, f: StackedForward, a: np.ndarray, scale: np.ndarray, grad_b1: np.ndarray
-    ) -> None:
+        self,
+        f: StackedForward,
+        a: np.ndarray,
+        scale: np.ndarray,
+        grad_b1: np.ndarray,
+        f2: StackedForward,
+    ) -> StackedForward:
         """θ ← θ + scale · ∂Q_a(x)/∂θ per member, in place: the semi-gradient step with
-        scale = α·δ.  ``grad_b1`` is ``∂Q_a/∂b_1`` at the parameters ``f`` was computed with
-        (:attr:`TDTerms.grad_b1`)."""
+        scale = α·δ; ``grad_b1`` is ``∂Q_a/∂b_1`` at the parameters ``f`` was computed with
+        (:attr:`TDTerms.grad_b1`).  Returns the forward pass at ``f2.x`` with the new
+        parameters, updated from ``f2`` (the pass at s' the step was computed with)."""
         scale = np.ascontiguousarray(scale, dtype=self.dtype)
-        _sgd_kernel(self.w1t, self.b1, self.w2, self.b2, f.x, f.h, _int(a), scale, grad_b1)
+        p, h, q = np.empty_like(f2.p), np.empty_like(f2.h), np.empty_like(f2.q)
+        _sgd_kernel(self.w1t, self.b1, self.w2, self.b2, f.x, f.h, _int(a), scale, grad_b1,
+                    f2.x, f2.p, p, h, q)  # fmt: skip
+        return StackedForward(f2.x, p, h, q)
 
 
 @njit(**_JIT)
@@ -399,8 +434,11 @@ class FastTwoLayer:
         self.b2 = self.stack.b2[0]
         self.dtype = self.stack.dtype
 
-    def forward(self, x: np.ndarray) -> Forward:
-        f = self.stack.forward(np.asarray(x, dtype=self.dtype)[None])
+    def forward(self, x: np.ndarray, reuse: Forward | None = None) -> Forward:
+        """Forward pass at ``x``; ``reuse`` as in :meth:`StackedTwoLayer.forward`."""
+        f = self.stack.forward(
+            np.asarray(x, dtype=self.dtype)[None], None if reuse is None else _stacked(reuse)
+        )
         return Forward(f.x[0], f.p[0], f.h[0], f.q[0])
 
     def td_terms(self, f1: Forward, a: int, f2: Forward, b: int) -> tuple[float, float, np.ndarray]:
@@ -412,11 +450,14 @@ class FastTwoLayer:
         """Θ((x1, a), (x2, b)) from two cached forward passes (module docstring)."""
         return float(self.stack.ntk(_stacked(f1), np.array([a]), _stacked(f2), np.array([b]))[0])
 
-    def sgd_step(self, f: Forward, a: int, scale: float, grad_b1: np.ndarray | None = None) -> None:
-        """θ ← θ + scale · ∂Q_a(x)/∂θ, the semi-gradient step with scale = α·δ."""
-        if grad_b1 is None:
-            grad_b1 = (self.w2[a] * (f.p > 0.0))[None]
-        self.stack.sgd_step(_stacked(f), np.array([a]), np.array([scale]), grad_b1)
+    def sgd_step(
+        self, f: Forward, a: int, scale: float, grad_b1: np.ndarray, f2: Forward
+    ) -> Forward:
+        """θ ← θ + scale · ∂Q_a(x)/∂θ, the semi-gradient step with scale = α·δ; returns the
+        forward pass at ``f2.x`` with the new parameters (:meth:`StackedTwoLayer.sgd_step`)."""
+        g = self.stack.sgd_step(_stacked(f), np.array([a]), np.array([scale]), grad_b1,
+                                _stacked(f2))  # fmt: skip
+        return Forward(g.x[0], g.p[0], g.h[0], g.q[0])
 
 
 def _stacked(f: Forward) -> StackedForward:

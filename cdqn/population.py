@@ -1,10 +1,11 @@
 """Populations: ``K`` seeds of one configuration trained in one process as one batch.
 
 ``python -m cdqn.train train.population=10 seed=0`` trains seeds 0, 1, …, 9 together.  The
-members' networks are stacked (:class:`cdqn.network.StackedTwoLayer`), their environments
-step as one (:mod:`cdqn.vector_env`) and their controllers run on arrays
-(:class:`ControllerBank`), so one step of the population costs a few NumPy calls on arrays
-of ``K`` rows instead of ``K`` times the per-call overhead of a single run.
+members' networks are stacked and stepped by the compiled loops a single run uses
+(:class:`cdqn.network.StackedTwoLayer`), their environments step as one
+(:mod:`cdqn.vector_env`) and their controllers run on arrays (:class:`ControllerBank`), so
+the per-step Python of the trainer, the environment and the bookkeeping is paid once for
+``K`` members.
 
 Each member is still its own MLflow run with the content of a single run of its seed
 (params with ``seed`` set to the member's seed and ``train.population=1``, the same tags
@@ -14,12 +15,11 @@ operation acts on each member's row alone, through the kernels a single run uses
 numbers are bit-identical (``tests/test_population.py``).
 
 :class:`ControlledPopulation` is the batched :class:`cdqn.agents.ControlledAgent` (fast path)
-for ``none``, ``h2``, ``hinf`` and ``hinf_f``.  Double DQN, ``train.fast_path=false`` and
-environments or controllers without a batched form fall back to training the members one
-after another in the same process (Double DQN's minibatch step already fills the core;
-batching it would buy little).  Members write no checkpoints: an interrupted population
-marks its unfinished members KILLED, and a restarted sweep with
-``tracking.skip_finished=true`` trains exactly those again.
+for ``none``, ``h2``, ``hinf`` and ``hinf_f``.  Double DQN and ``train.fast_path=false`` fall
+back to training the members one after another in the same process (Double DQN's cost is
+its minibatch step, which batching the seeds would not make cheaper).  Members write no
+checkpoints: an interrupted population marks its unfinished members KILLED, and a restarted
+sweep with ``tracking.skip_finished=true`` trains exactly those again.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, read_write
 from tqdm.auto import tqdm
 
 from cdqn.agents.base import EpsilonGreedy, StepRecord
@@ -61,24 +61,10 @@ def member_seeds(seed: int, population: int) -> list[int]:
 def member_config(cfg: DictConfig, seed: int) -> DictConfig:
     """The configuration of the single run a member stands for."""
     out = copy.deepcopy(cfg)
-    with _unlocked(out):
+    with read_write(out):
         out.seed = seed
         out.train.population = 1
     return out
-
-
-class _unlocked:
-    """Context manager: allow assignment in a (read-only / struct) DictConfig."""
-
-    def __init__(self, cfg: DictConfig) -> None:
-        self.cfg = cfg
-        self.readonly = OmegaConf.is_readonly(cfg)
-
-    def __enter__(self) -> None:
-        OmegaConf.set_readonly(self.cfg, False)
-
-    def __exit__(self, *exc: object) -> None:
-        OmegaConf.set_readonly(self.cfg, self.readonly)
 
 
 class ControllerBank:
@@ -194,6 +180,8 @@ class ControlledPopulation:
         self.explorers = [EpsilonGreedy(cfg, self.spec.n_actions, rng) for rng in rngs]
         self.x_e = np.zeros(len(nets))
         self._f1: StackedForward | None = None
+        self._next: StackedForward | None = None
+        """Forward pass at the last s' with the current parameters (reused at s = s')."""
 
     def __len__(self) -> int:
         return len(self.x_e)
@@ -205,7 +193,7 @@ class ControlledPopulation:
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         """ε-greedy actions ``(K,)``; the forward pass at ``obs`` is kept for :meth:`update`."""
-        self._f1 = f1 = self.net.forward(obs)
+        self._f1 = f1 = self.net.forward(obs, reuse=self._next)
         actions = np.argmax(f1.q, axis=1)
         for i, explorer in enumerate(self.explorers):
             random_action = explorer.explore()
@@ -234,7 +222,7 @@ class ControlledPopulation:
         u = self.controller.step(self.x_e, q1, q_next, td.theta1, td.theta2)
         delta = error + u
         loss = 0.5 * self.controller.loss_weight * delta * delta
-        self.net.sgd_step(f1, actions, self.alpha * delta, td.grad_b1)
+        self._next = self.net.sgd_step(f1, actions, self.alpha * delta, td.grad_b1, f2)
         return PopulationStep(loss, q1, q2, u, self.x_e.copy(), td.theta1, td.theta2)
 
     def select(self, keep: np.ndarray) -> None:
@@ -243,6 +231,8 @@ class ControlledPopulation:
         self.controller.select(keep)
         self.explorers = [self.explorers[i] for i in keep]
         self.x_e = self.x_e[keep]
+        if self._next is not None:
+            self._next = StackedForward(*(field[keep] for field in self._next))
 
     def network(self, i: int) -> QNetwork:
         """Member ``i``'s network as a :class:`QNetwork`."""

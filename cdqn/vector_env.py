@@ -5,10 +5,12 @@ go through it (its own seeded ``np_random``), so every episode starts where a si
 with that seed starts.  Steps go through one of two implementations:
 
 * :class:`ClassicControlTwin` — for CartPole, Acrobot and MountainCar: gymnasium's
-  dynamics on arrays of ``K`` states, written operation for operation as gymnasium
-  writes them for one (same order of floating-point operations, ``cos``/``sin`` and
-  ``x**2`` through the same libm routines), so each member's trajectory is bit-identical
-  to the environment's own (``tests/test_population.py`` checks this).
+  dynamics on ``K`` states, written operation for operation as gymnasium writes them for
+  one (same order of floating-point operations, ``cos``/``sin`` and ``x**2`` through the
+  same libm routines), so each member's trajectory is bit-identical to the environment's
+  own (``tests/test_population.py`` checks this).  CartPole and MountainCar are compiled
+  loops (numba, strict IEEE arithmetic); Acrobot's RK4 stays in NumPy, because its
+  ``x**2`` must be libm's ``pow`` (not ``x*x``), which a compiler may rewrite.
 * :class:`GymLoop` — any other environment: a loop over the members' environments.
 
 Both count steps and truncate at the environment's ``TimeLimit`` as gymnasium does.
@@ -16,6 +18,7 @@ Both count steps and truncate at the environment's ``TimeLimit`` as gymnasium do
 
 from __future__ import annotations
 
+import math
 from math import pi
 from typing import NamedTuple, Protocol
 
@@ -25,6 +28,7 @@ from gymnasium.envs.classic_control.acrobot import AcrobotEnv
 from gymnasium.envs.classic_control.cartpole import CartPoleEnv
 from gymnasium.envs.classic_control.mountain_car import MountainCarEnv
 from gymnasium.wrappers import OrderEnforcing, PassiveEnvChecker, TimeLimit
+from numba import njit
 
 from cdqn.envs import ObservationSubset
 
@@ -167,35 +171,17 @@ class ClassicControlTwin:
         return VectorStep(obs, reward, terminated, truncated)
 
     def _cartpole(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """gymnasium ``CartPoleEnv.step``, vectorised."""
+        """gymnasium ``CartPoleEnv.step`` for every member (:func:`_cartpole_kernel`)."""
         e = self.base
-        x, x_dot, theta, theta_dot = self.state.T
-        force = np.where(action == 1, e.force_mag, -e.force_mag)
-        costheta = np.cos(theta)
-        sintheta = np.sin(theta)
-        temp = (force + e.polemass_length * np.square(theta_dot) * sintheta) / e.total_mass
-        thetaacc = (e.gravity * sintheta - costheta * temp) / (
-            e.length * (4.0 / 3.0 - e.masspole * np.square(costheta) / e.total_mass)
-        )
-        xacc = temp - e.polemass_length * thetaacc * costheta / e.total_mass
-        if e.kinematics_integrator == "euler":
-            x = x + e.tau * x_dot
-            x_dot = x_dot + e.tau * xacc
-            theta = theta + e.tau * theta_dot
-            theta_dot = theta_dot + e.tau * thetaacc
-        else:  # semi-implicit euler
-            x_dot = x_dot + e.tau * xacc
-            x = x + e.tau * x_dot
-            theta_dot = theta_dot + e.tau * thetaacc
-            theta = theta + e.tau * theta_dot
-        self.state = np.stack([x, x_dot, theta, theta_dot], axis=1)
-        terminated = (
-            (x < -e.x_threshold)
-            | (x > e.x_threshold)
-            | (theta < -e.theta_threshold_radians)
-            | (theta > e.theta_threshold_radians)
-        )
-        return self.state.astype(np.float32), np.ones(len(action)), terminated
+        obs = np.empty(self.state.shape, np.float32)
+        terminated = np.empty(len(action), np.bool_)
+        _cartpole_kernel(
+            self.state, np.ascontiguousarray(action, np.int64), e.force_mag, e.gravity,
+            e.masspole, e.total_mass, e.length, e.polemass_length, e.tau,
+            e.kinematics_integrator == "euler", e.x_threshold, e.theta_threshold_radians,
+            obs, terminated,
+        )  # fmt: skip
+        return obs, np.ones(len(action)), terminated
 
     def _dsdt(self, s: np.ndarray) -> np.ndarray:
         """gymnasium ``AcrobotEnv._dsdt`` on rows ``[θ1, θ2, θ̇1, θ̇2, torque]``."""
@@ -257,17 +243,70 @@ class ClassicControlTwin:
         return obs, np.where(terminated, 0.0, -1.0), terminated
 
     def _mountaincar(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """gymnasium ``MountainCarEnv.step``, vectorised."""
+        """gymnasium ``MountainCarEnv.step`` for every member (:func:`_mountaincar_kernel`)."""
         e = self.base
-        position, velocity = self.state[:, 0], self.state[:, 1]
-        velocity = velocity + ((action - 1) * e.force + np.cos(3 * position) * (-e.gravity))
-        velocity = np.clip(velocity, -e.max_speed, e.max_speed)
+        obs = np.empty(self.state.shape, np.float32)
+        terminated = np.empty(len(action), np.bool_)
+        _mountaincar_kernel(
+            self.state, np.ascontiguousarray(action, np.int64), e.force, e.gravity, e.max_speed,
+            e.min_position, e.max_position, e.goal_position, e.goal_velocity, obs, terminated,
+        )  # fmt: skip
+        return obs, np.full(len(action), -1.0), terminated
+
+
+@njit(cache=True)  # strict IEEE arithmetic (no fastmath), libm cos/sin as gymnasium's NumPy
+def _cartpole_kernel(state, action, force_mag, gravity, masspole, total_mass, length,
+                     polemass_length, tau, euler, x_threshold, theta_threshold, obs,
+                     terminated):  # fmt: skip
+    """gymnasium ``CartPoleEnv.step`` on each row of ``state`` (in place), operation for
+    operation in gymnasium's order."""
+    for k in range(state.shape[0]):
+        x, x_dot, theta, theta_dot = state[k, 0], state[k, 1], state[k, 2], state[k, 3]
+        force = force_mag if action[k] == 1 else -force_mag
+        costheta = math.cos(theta)
+        sintheta = math.sin(theta)
+        temp = (force + polemass_length * (theta_dot * theta_dot) * sintheta) / total_mass
+        thetaacc = (gravity * sintheta - costheta * temp) / (
+            length * (4.0 / 3.0 - masspole * (costheta * costheta) / total_mass)
+        )
+        xacc = temp - polemass_length * thetaacc * costheta / total_mass
+        if euler:
+            x = x + tau * x_dot
+            x_dot = x_dot + tau * xacc
+            theta = theta + tau * theta_dot
+            theta_dot = theta_dot + tau * thetaacc
+        else:  # semi-implicit euler
+            x_dot = x_dot + tau * xacc
+            x = x + tau * x_dot
+            theta_dot = theta_dot + tau * thetaacc
+            theta = theta + tau * theta_dot
+        state[k, 0], state[k, 1], state[k, 2], state[k, 3] = x, x_dot, theta, theta_dot
+        for i in range(4):
+            obs[k, i] = state[k, i]
+        terminated[k] = (
+            x < -x_threshold
+            or x > x_threshold
+            or theta < -theta_threshold
+            or theta > theta_threshold
+        )
+
+
+@njit(cache=True)  # strict IEEE arithmetic (no fastmath), libm cos as gymnasium's math.cos
+def _mountaincar_kernel(state, action, force, gravity, max_speed, min_position,
+                        max_position, goal_position, goal_velocity, obs, terminated):  # fmt: skip
+    """gymnasium ``MountainCarEnv.step`` on each row of ``state`` (in place), operation for
+    operation in gymnasium's order (``np.clip`` as min/max)."""
+    for k in range(state.shape[0]):
+        position, velocity = state[k, 0], state[k, 1]
+        velocity = velocity + ((action[k] - 1) * force + math.cos(3 * position) * (-gravity))
+        velocity = min(max(velocity, -max_speed), max_speed)
         position = position + velocity
-        position = np.clip(position, e.min_position, e.max_position)
-        velocity = np.where((position == e.min_position) & (velocity < 0), 0.0, velocity)
-        terminated = (position >= e.goal_position) & (velocity >= e.goal_velocity)
-        self.state = np.stack([position, velocity], axis=1)
-        return self.state.astype(np.float32), np.full(len(action), -1.0), terminated
+        position = min(max(position, min_position), max_position)
+        if position == min_position and velocity < 0:
+            velocity = 0.0
+        terminated[k] = position >= goal_position and velocity >= goal_velocity
+        state[k, 0], state[k, 1] = position, velocity
+        obs[k, 0], obs[k, 1] = position, velocity
 
 
 def make_vector_env(envs: list[gym.Env]) -> VectorEnv:

@@ -5,12 +5,14 @@ hand-written minibatch step equals torch autograd's."""
 from __future__ import annotations
 
 import copy
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from cdqn import bench
 from cdqn.agents.ddqn import DDQNAgent
 from cdqn.config import ControllerConfig, TrainConfig
 from cdqn.control.h2 import LQRError, h2_gains, h2_gains_batch, h2_gains_reference
@@ -40,6 +42,7 @@ def test_stacked_members_compute_bit_identically_to_single_networks() -> None:
     singles = [FastTwoLayer(n) for n in copy.deepcopy(nets)]
     gen = np.random.default_rng(0)
     x = gen.normal(size=(4, 4))
+    nexts = []
     for _ in range(25):
         y = x + 0.1 * gen.normal(size=(4, 4))
         f1, f2 = stack.forward(x), stack.forward(y)
@@ -53,8 +56,14 @@ def test_stacked_members_compute_bit_identically_to_single_networks() -> None:
             theta1, theta2, grad = fast.td_terms(g1, int(a[k]), g2, int(b[k]))
             assert theta1 == td.theta1[k] and theta2 == td.theta2[k]
             assert np.array_equal(grad[0], td.grad_b1[k])
-            fast.sgd_step(g1, int(a[k]), float(scale[k]), grad)
-        stack.sgd_step(f1, a, scale, td.grad_b1)
+            nxt = fast.sgd_step(g1, int(a[k]), float(scale[k]), grad, g2)
+            assert np.array_equal(nxt.q, fast.forward(y[k], reuse=nxt).q)
+            np.testing.assert_allclose(nxt.q, fast.forward(y[k]).q, rtol=1e-12)  # fresh pass
+            nexts.append(nxt)
+        f_next = stack.sgd_step(f1, a, scale, td.grad_b1, f2)
+        for k, nxt in enumerate(nexts):
+            assert np.array_equal(nxt.p, f_next.p[k]) and np.array_equal(nxt.q, f_next.q[k])
+        nexts = []
         x = y
     for k, fast in enumerate(singles):
         assert np.array_equal(fast.stack.w1t[0], stack.w1t[k])
@@ -80,9 +89,12 @@ def test_hidden_weight_is_input_major_and_round_trips(tmp_path: Path) -> None:
     (net,) = _nets(1)
     assert net.hidden.weight.stride() == (1, 300)  # W1ᵀ contiguous, shared with NumPy
     fast = FastTwoLayer(net)
+    assert np.shares_memory(net.hidden.weight.detach().numpy(), fast.w1)
+    before = [p.detach().clone() for p in net.parameters()]
     f = fast.forward(np.ones(4))
-    fast.sgd_step(f, 1, 0.01)
-    assert np.array_equal(net.hidden.weight.detach().numpy(), fast.w1)  # same memory
+    _, _, grad = fast.td_terms(f, 1, f, 1)
+    fast.sgd_step(f, 1, 0.01, grad, f)  # the module sees the step, without copies
+    assert all(not torch.equal(b, p) for b, p in zip(before, net.parameters(), strict=True))
     save_network(net, tmp_path)
     loaded = load_network(tmp_path)
     for p, q in zip(net.parameters(), loaded.parameters(), strict=True):
@@ -152,3 +164,18 @@ def test_ddqn_hand_written_minibatch_step_equals_autograd() -> None:
     assert agents[0].steps >= 50  # many minibatch steps and target copies happened
     for p_fast, p_auto in zip(agents[0].net.parameters(), agents[1].net.parameters(), strict=True):
         torch.testing.assert_close(p_fast, p_auto, rtol=1e-10, atol=1e-12)
+
+
+def test_benchmark_reports_the_documented_fields(capsys: pytest.CaptureFixture[str]) -> None:
+    """``python -m cdqn.bench --json`` on a tiny budget (its numbers are not checked)."""
+    bench.main(
+        ["--width", "16", "--steps", "60", "--warmup", "20", "--repeats", "1",
+         "--population", "2", "--controllers", "none,hinf_f,ddqn", "--no-estimate", "--json"]
+    )  # fmt: skip
+    out = json.loads(capsys.readouterr().out)
+    assert out["floor"]["steps_per_s"] > 0
+    assert set(out["controllers"]) == {"none", "hinf_f", "ddqn"}
+    for entry in out["controllers"].values():
+        assert entry["steps_per_s"] > 0 and entry["ratio_to_floor"] > 0
+    assert out["population"]["k"] == 2 and out["population"]["speedup"] > 0
+    assert bench.makespan([3.0, 1.0, 1.0, 1.0], 2) == 3.0

@@ -89,15 +89,13 @@ class ControlledAgent:
         action = self.explorer.explore()
         if action is not None:
             return action
-        self._cached = self.fast.forward(obs)  # reused by update(): same parameters
+        self._cached = self.fast.forward(obs, reuse=self._cached)  # reused by update()
         return int(np.argmax(self._cached.q))
 
     def update(
         self, obs: np.ndarray, action: int, reward: float, next_obs: np.ndarray, terminated: bool
     ) -> StepRecord:
-        f1 = self._cached
-        if f1 is None or not np.array_equal(f1.x, obs):
-            f1 = self.fast.forward(obs)
+        f1 = self.fast.forward(obs, reuse=self._cached)  # the last step's pass at s' = s
         self._cached = None
         f2 = self.fast.forward(next_obs)
         a2 = int(np.argmax(f2.q))
@@ -110,8 +108,8 @@ class ControlledAgent:
         u = self.controller.step(self.x_e, q1, q_next, theta1, theta2)
         delta = error + u
         loss = 0.5 * self.controller.loss_weight * delta * delta
-        if self.use_fast_path:
-            self.fast.sgd_step(f1, action, self.alpha * delta, grad_b1)
+        if self.use_fast_path:  # also gives the pass at s' with the new parameters
+            self._cached = self.fast.sgd_step(f1, action, self.alpha * delta, grad_b1, f2)
         else:
             loss = self._autograd_step(obs, action, reward, q_next, u)
         return StepRecord(loss, q1, q2, u, self.x_e, theta1, theta2)
