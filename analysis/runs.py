@@ -37,7 +37,7 @@ from mlflow.exceptions import MlflowException  # noqa: E402
 from mlflow.store.db.db_types import DATABASE_ENGINES  # noqa: E402
 from mlflow.tracking import MlflowClient  # noqa: E402
 
-from cdqn.config import TrackingConfig  # noqa: E402
+from cdqn.config import TrackingConfig, resolve_tracking_uri  # noqa: E402
 
 DEFAULT_URI = TrackingConfig.uri
 """The training default (``sqlite:///mlflow.db`` in the working folder)."""
@@ -76,19 +76,6 @@ class EmptyStoreError(RuntimeError):
     """The store holds no runs to analyse (or not the experiment asked for)."""
 
 
-def resolve_uri(uri: str) -> str:
-    """Make a relative ``sqlite:///`` URI or a plain path absolute, as training does.
-
-    Same rule as ``cdqn.train.resolve_tracking_uri`` (kept here so that loading runs never
-    imports torch).
-    """
-    if uri.startswith("sqlite:///") and not uri.startswith("sqlite:////"):
-        return "sqlite:///" + str(Path(uri[len("sqlite:///") :]).resolve())
-    if "://" not in uri and not uri.startswith("file:"):
-        return Path(uri).resolve().as_uri()
-    return uri
-
-
 def param_value(text: Any, default: Any = None) -> Any:
     """Decode one MLflow param string (``"[200.0, 500.0]"``, ``"195.0"``, ``"None"``)."""
     if text is None or (isinstance(text, float) and np.isnan(text)):
@@ -125,7 +112,7 @@ class RunStore:
         statuses: Sequence[str] = ("FINISHED",),
         threads: int = 8,
     ) -> None:
-        self.uri = resolve_uri(uri)
+        self.uri = resolve_tracking_uri(uri)
         self.experiment = experiment
         self.statuses = tuple(s.upper() for s in statuses)
         self.threads = threads

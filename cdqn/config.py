@@ -9,6 +9,7 @@ where there is one, the paper's symbol.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
@@ -241,6 +242,16 @@ class TrackingConfig:
     skip_finished: bool = False
     """Skip a run whose configuration and seed already have a FINISHED run in the store
     (restarted sweeps; cdqn.sweep)."""
+
+
+def resolve_tracking_uri(uri: str) -> str:
+    """Make a relative ``sqlite:///`` store or a plain path absolute, so that every launcher
+    process and the analysis scripts open the same store; other URIs are returned as given."""
+    if uri.startswith("sqlite:///") and not uri.startswith("sqlite:////"):
+        return "sqlite:///" + str(Path(uri[len("sqlite:///") :]).resolve())
+    if "://" not in uri and not uri.startswith("file:"):
+        return Path(uri).resolve().as_uri()
+    return uri
 
 
 @dataclass

@@ -40,6 +40,7 @@ from cdqn.config import (
     EnvConfig,
     EvaluateConfig,
     register_configs,
+    resolve_tracking_uri,
     validate_evaluate,
 )
 from cdqn.envs import make_env
@@ -100,7 +101,6 @@ def greedy_returns(
 def evaluate(cfg: EvaluateConfig) -> EvalResult:
     """Evaluate run ``cfg.run_id`` (module docstring); log to the run when ``cfg.log``."""
     validate_evaluate(cfg)
-    from cdqn.train import resolve_tracking_uri  # noqa: PLC0415
 
     uri = resolve_tracking_uri(cfg.tracking.uri)
     check_tracking(uri, cfg.tracking.timeout)

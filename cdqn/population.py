@@ -38,7 +38,7 @@ from omegaconf import DictConfig, OmegaConf, read_write
 from tqdm.auto import tqdm
 
 from cdqn.agents.base import EpsilonGreedy, StepRecord
-from cdqn.config import Config, TrainConfig, validate
+from cdqn.config import Config, TrainConfig, resolve_tracking_uri, validate
 from cdqn.control.factory import ControllerSetup, make_controller
 from cdqn.control.runtime import NoControl, RuntimeController, StateSpace, StaticGain
 from cdqn.envs import env_sizes, make_env
@@ -462,7 +462,7 @@ class PopulationResult:
 def run_population(cfg: DictConfig, progress: bool = True) -> PopulationResult:
     """Train seeds ``seed … seed+population−1`` of ``cfg``, each as its own MLflow run
     (module docstring)."""
-    from cdqn.train import RunResult, resolve_tracking_uri, run  # noqa: PLC0415
+    from cdqn.train import RunResult, run  # noqa: PLC0415
 
     conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
     validate(conf)

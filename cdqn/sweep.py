@@ -28,6 +28,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from cdqn.config import resolve_tracking_uri
+
 try:
     import fcntl
 except ImportError:  # Windows: no advisory locks, PrepareStore still creates the store once
@@ -129,7 +131,6 @@ class PrepareStore(Callback):
     start (module docstring)."""
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        from cdqn.train import resolve_tracking_uri  # noqa: PLC0415 (train imports this module)
 
         try:
             uri = resolve_tracking_uri(str(config.tracking.uri))

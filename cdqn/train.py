@@ -36,7 +36,13 @@ from cdqn.agents import Agent, make_agent
 from cdqn.callbacks import record_job
 from cdqn.checkpoint import CheckpointStore, capture, restore
 from cdqn.cli import preflight, resume_conflicts
-from cdqn.config import Config, ConfigError, register_configs, validate
+from cdqn.config import (
+    Config,
+    ConfigError,
+    register_configs,
+    resolve_tracking_uri,
+    validate,
+)
 from cdqn.control.errors import DesignError
 from cdqn.control.factory import ControllerSetup, make_controller
 from cdqn.envs import env_sizes, make_env
@@ -82,15 +88,6 @@ class Job:
     net: QNetwork
     agent: Agent
     rng: np.random.Generator
-
-
-def resolve_tracking_uri(uri: str) -> str:
-    """Make a relative ``sqlite:///`` or plain-path store absolute (stable across launchers)."""
-    if uri.startswith("sqlite:///") and not uri.startswith("sqlite:////"):
-        return "sqlite:///" + str(Path(uri[len("sqlite:///") :]).resolve())
-    if "://" not in uri and not uri.startswith("file:"):
-        return Path(uri).resolve().as_uri()
-    return uri
 
 
 def build(conf: Config, env: gym.Env) -> Job:
