@@ -20,24 +20,24 @@ def _agent(controller, fast_path: bool, lr: float) -> ControlledAgent:
     return ControlledAgent(net, controller, cfg, True, np.random.default_rng(0))
 
 
+def _static() -> StaticGain:
+    return StaticGain(0.4, -0.7, -0.3)
+
+
+def _dynamic() -> StateSpace:
+    A, B = np.array([[-50.0]]), np.array([[1.0, 2.0, -1.0]])
+    return StateSpace(A, B, np.array([[3.0]]), np.array([[0.5, -0.2, 0.1]]), 1e-6)
+
+
+each_controller = pytest.mark.parametrize("make", [_static, _dynamic], ids=["static", "dynamic"])
+"""A fresh controller per test: the dynamic one carries state."""
+
+
 @pytest.mark.parametrize("fast_path", [True, False])
-@pytest.mark.parametrize(
-    "controller",
-    [
-        StaticGain(0.4, -0.7, -0.3),
-        StateSpace(
-            np.array([[-50.0]]),
-            np.array([[1.0, 2.0, -1.0]]),
-            np.array([[3.0]]),
-            np.array([[0.5, -0.2, 0.1]]),
-            1e-6,
-        ),
-    ],
-    ids=["static", "dynamic"],
-)
-def test_one_sgd_step_moves_q1_by_alpha_theta1_delta(controller, fast_path: bool) -> None:
+@each_controller
+def test_one_sgd_step_moves_q1_by_alpha_theta1_delta(make, fast_path: bool) -> None:
     lr = 1e-6
-    agent = _agent(controller, fast_path, lr)
+    agent = _agent(make(), fast_path, lr)
     obs = np.array([0.1, -0.2, 0.3, 0.05])
     nxt = np.array([0.12, -0.1, 0.25, 0.0])
     action, reward = 1, 1.0
@@ -50,25 +50,12 @@ def test_one_sgd_step_moves_q1_by_alpha_theta1_delta(controller, fast_path: bool
 
 
 @pytest.mark.parametrize("fast_path", [True, False])
-@pytest.mark.parametrize(
-    "controller",
-    [
-        StaticGain(0.4, -0.7, -0.3),
-        StateSpace(
-            np.array([[-50.0]]),
-            np.array([[1.0, 2.0, -1.0]]),
-            np.array([[3.0]]),
-            np.array([[0.5, -0.2, 0.1]]),
-            1e-6,
-        ),
-    ],
-    ids=["static", "dynamic"],
-)
-def test_one_sgd_step_moves_q2_by_alpha_theta2_delta(controller, fast_path: bool) -> None:
+@each_controller
+def test_one_sgd_step_moves_q2_by_alpha_theta2_delta(make, fast_path: bool) -> None:
     """u reaches Q2 = Q(s', a') through Θ2 like the reward: the gradient-flow plant
     (B_u = [Θ1, Θ2]) is the one training realises, not the paper's B_u = [Θ1, 0]."""
     lr = 1e-6
-    agent = _agent(controller, fast_path, lr)
+    agent = _agent(make(), fast_path, lr)
     obs = np.array([0.1, -0.2, 0.3, 0.05])
     nxt = np.array([0.12, -0.1, 0.25, 0.0])
     action, reward = 1, 1.0
