@@ -15,19 +15,32 @@ from cdqn.control.box import NTKBox  # noqa: E402
 from cdqn.control.weights import SisoWeight  # noqa: E402
 
 
+def _finish(
+    fig: plt.Figure,
+    ax: plt.Axes,
+    path: Path,
+    xlabel: str,
+    ylabel: str,
+    title: str,
+    log: bool = False,
+) -> None:
+    """Label, grid and legend the axes, then write the figure to ``path`` and close it."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(True, which="both" if log else "major", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def plot_weights(weights: list[SisoWeight], omega: np.ndarray, path: Path) -> None:
     """Bode magnitude of each design weight."""
     fig, ax = plt.subplots(figsize=(6, 4))
     for w in weights:
         ax.loglog(omega, np.maximum(w.mag(omega), 1e-300), label=w.name)
-    ax.set_xlabel("ω [rad/s of learning time]")
-    ax.set_ylabel("|W(jω)|")
-    ax.set_title("Design weights")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    _finish(fig, ax, path, "ω [rad/s of learning time]", "|W(jω)|", "Design weights", log=True)
 
 
 def plot_cover(
@@ -40,14 +53,15 @@ def plot_cover(
     ax.loglog(omega, errors.max(axis=0), color="k", lw=1.2, label="max over samples")
     ax.loglog(omega, cover.mag(omega), color="C3", lw=2, label="cover |w|")
     ax.axvspan(band[0], band[1], color="C0", alpha=0.05, label="fitted band")
-    ax.set_xlabel("ω [rad/s of learning time]")
-    ax.set_ylabel("σ̄((P_i − P_0) P_0⁻¹)")
-    ax.set_title("Output-multiplicative cover of the sampled plants")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    _finish(
+        fig,
+        ax,
+        path,
+        "ω [rad/s of learning time]",
+        "σ̄((P_i − P_0) P_0⁻¹)",
+        "Output-multiplicative cover of the sampled plants",
+        log=True,
+    )
 
 
 def plot_sigma(omega: np.ndarray, sv: np.ndarray, gamma: float, title: str, path: Path) -> None:
@@ -57,14 +71,7 @@ def plot_sigma(omega: np.ndarray, sv: np.ndarray, gamma: float, title: str, path
     ax.loglog(omega, np.maximum(sv[:, -1], 1e-300), label="σ_min")
     if np.isfinite(gamma):
         ax.axhline(gamma, color="k", ls="--", lw=1, label=f"γ = {gamma:.4g}")
-    ax.set_xlabel("ω [rad/s of learning time]")
-    ax.set_ylabel("σ(T(jω))")
-    ax.set_title(title)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    _finish(fig, ax, path, "ω [rad/s of learning time]", "σ(T(jω))", title, log=True)
 
 
 def plot_box(
@@ -90,11 +97,4 @@ def plot_box(
     ax.scatter([box.nominal[0]], [box.nominal[1]], marker="*", s=120, color="C2", label="nominal")
     if unstable is not None and len(unstable):
         ax.scatter(unstable[:, 0], unstable[:, 1], marker="x", color="k", label="unstable")
-    ax.set_xlabel("Θ1")
-    ax.set_ylabel("Θ2")
-    ax.set_title("NTK box")
-    ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    _finish(fig, ax, path, "Θ1", "Θ2", "NTK box")
