@@ -103,21 +103,20 @@ def ntk_autograd(net: QNetwork, x: torch.Tensor, a: int, y: torch.Tensor, b: int
 
 
 class Forward(NamedTuple):
-    """Cached forward pass at one input: pre-activation, activation and Q-values."""
+    """Cached forward pass at one input: input, pre-activation ``p`` and Q-values
+    (the activation ``relu(p)`` is recomputed where it is needed)."""
 
     x: np.ndarray
     p: np.ndarray
-    h: np.ndarray
     q: np.ndarray
 
 
 class StackedForward(NamedTuple):
     """Forward passes of ``K`` stacked networks, one input each: shapes ``(K, n_obs)``,
-    ``(K, width)``, ``(K, width)``, ``(K, n_actions)``."""
+    ``(K, width)``, ``(K, n_actions)``."""
 
     x: np.ndarray
     p: np.ndarray
-    h: np.ndarray
     q: np.ndarray
 
 
@@ -139,78 +138,91 @@ population size, so a member's numbers never depend on ``K`` (``tests/test_fast_
 
 
 @njit(**_JIT)
-def _forward_kernel(w1t, b1, w2, b2, x, rows, p, h, q):
-    """Per member ``k`` in ``rows``: ``p = b_1 + Σ_i x_i W_1ᵀ[i]``, ``h = relu(p)``,
-    ``q = W_2 h + b_2``."""
-    n_obs, width = w1t.shape[1], w1t.shape[2]
+def forward_row(w1t, b1, w2, b2, x, p, q):  # noqa: ANN001, ANN201
+    """One member: ``p = b_1 + Σ_i x_i W_1ᵀ[i]``, ``q = W_2 relu(p) + b_2``."""
+    n_obs, width = w1t.shape
+    for j in range(width):
+        p[j] = b1[j]
+    for i in range(n_obs):
+        xi = x[i]
+        for j in range(width):
+            p[j] += w1t[i, j] * xi
+    for a in range(w2.shape[0]):
+        acc = 0.0
+        for j in range(width):
+            acc += w2[a, j] * max(p[j], 0.0)
+        q[a] = acc + b2[a]
+
+
+@njit(**_JIT)
+def td_row(w2, x1, p1, x2, p2, a, b, g):  # noqa: ANN001, ANN201
+    """One member: ``g = W_2[a] ⊙ [p1 > 0]`` (written into ``g``) and (Θ1, Θ2) of the module
+    docstring with ``h = relu(p1)``, ``h' = relu(p2)``; ``Θ2``'s hidden-layer sum is
+    ``Σ_j g_j W_2[b, j] [p2_j > 0]``."""
+    hh = h12 = gg = gg2 = 0.0
+    for j in range(w2.shape[1]):
+        h1j, h2j = max(p1[j], 0.0), max(p2[j], 0.0)
+        gj = w2[a, j] if p1[j] > 0.0 else 0.0
+        g[j] = gj
+        hh += h1j * h1j
+        h12 += h1j * h2j
+        gg += gj * gj
+        gg2 += gj * w2[b, j] if p2[j] > 0.0 else 0.0
+    xx = x12 = 0.0
+    for i in range(x1.shape[0]):
+        xx += x1[i] * x1[i]
+        x12 += x1[i] * x2[i]
+    theta1 = hh + 1.0 + (xx + 1.0) * gg
+    theta2 = (h12 + 1.0 if a == b else 0.0) + (x12 + 1.0) * gg2
+    return theta1, theta2
+
+
+@njit(**_JIT)
+def sgd_row(w1t, b1, w2, b2, x, p, a, s, g, x2, p2, p_next, q_next):  # noqa: ANN001, ANN201
+    """One member, in place: ``W_2[a] += s relu(p)``, ``b_2[a] += s``, ``W_1ᵀ[i] += (s x_i) g``,
+    ``b_1 += s g`` with ``g = ∂Q_a/∂b_1`` at ``x``; then the forward pass at ``x2`` with the
+    new parameters from the one with the old parameters (``p2``):
+    ``p' = p2 + s (x·x2 + 1) g`` (exact in real arithmetic), ``q' = W_2 relu(p') + b_2``.
+    ``p_next`` may be ``p`` or ``p2`` (each is read before it is written)."""
+    n_obs, width = w1t.shape
+    for j in range(width):
+        w2[a, j] += s * max(p[j], 0.0)
+    b2[a] += s
+    xx2 = 0.0
+    for i in range(n_obs):
+        sx = s * x[i]
+        xx2 += x[i] * x2[i]
+        for j in range(width):
+            w1t[i, j] += sx * g[j]
+    for j in range(width):
+        b1[j] += s * g[j]
+    c = s * (xx2 + 1.0)
+    for j in range(width):
+        p_next[j] = p2[j] + c * g[j]
+    for a2 in range(w2.shape[0]):
+        acc = 0.0
+        for j in range(width):
+            acc += w2[a2, j] * max(p_next[j], 0.0)
+        q_next[a2] = acc + b2[a2]
+
+
+@njit(**_JIT)
+def _forward_kernel(w1t, b1, w2, b2, x, rows, p, q):  # noqa: ANN001, ANN202
     for k in rows:
-        for j in range(width):
-            p[k, j] = b1[k, j]
-        for i in range(n_obs):
-            xi = x[k, i]
-            for j in range(width):
-                p[k, j] += w1t[k, i, j] * xi
-        for j in range(width):
-            h[k, j] = max(p[k, j], 0.0)
-        for a in range(w2.shape[1]):
-            acc = 0.0
-            for j in range(width):
-                acc += w2[k, a, j] * h[k, j]
-            q[k, a] = acc + b2[k, a]
+        forward_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], q[k])
 
 
 @njit(**_JIT)
-def _td_kernel(w2, x1, p1, h1, x2, p2, h2, a, b, g, theta):
-    """Per member: ``g = W_2[a] ⊙ [p1 > 0]`` and Θ1, Θ2 of the module docstring,
-    ``Θ2``'s hidden-layer sum being ``Σ_j g_j W_2[b, j] [p2_j > 0]``."""
+def _td_kernel(w2, x1, p1, x2, p2, a, b, g, theta):  # noqa: ANN001, ANN202
     for k in range(w2.shape[0]):
-        ak, bk = a[k], b[k]
-        hh = h12 = gg = gg2 = 0.0
-        for j in range(w2.shape[2]):
-            gj = w2[k, ak, j] if p1[k, j] > 0.0 else 0.0
-            g[k, j] = gj
-            hh += h1[k, j] * h1[k, j]
-            h12 += h1[k, j] * h2[k, j]
-            gg += gj * gj
-            gg2 += gj * w2[k, bk, j] if p2[k, j] > 0.0 else 0.0
-        xx = x12 = 0.0
-        for i in range(x1.shape[1]):
-            xx += x1[k, i] * x1[k, i]
-            x12 += x1[k, i] * x2[k, i]
-        theta[k, 0] = hh + 1.0 + (xx + 1.0) * gg
-        theta[k, 1] = (h12 + 1.0 if ak == bk else 0.0) + (x12 + 1.0) * gg2
+        theta[k, 0], theta[k, 1] = td_row(w2[k], x1[k], p1[k], x2[k], p2[k], a[k], b[k], g[k])
 
 
 @njit(**_JIT)
-def _sgd_kernel(w1t, b1, w2, b2, x, h, a, scale, g, x2, p2, p_next, h_next, q_next):
-    """Per member, in place: ``W_2[a] += s h``, ``b_2[a] += s``, ``W_1ᵀ[i] += (s x_i) g``,
-    ``b_1 += s g`` with ``s = scale_k``, ``g = ∂Q_a/∂b_1``; then the forward pass at ``x2``
-    with the new parameters from the one with the old parameters (``p2``):
-    ``p' = p2 + s (x·x2 + 1) g`` (exact in real arithmetic), ``h' = relu(p')``,
-    ``q' = W_2 h' + b_2``."""
-    n_members, n_obs, width = w1t.shape
-    for k in range(n_members):
-        s, ak = scale[k], a[k]
-        for j in range(width):
-            w2[k, ak, j] += s * h[k, j]
-        b2[k, ak] += s
-        xx2 = 0.0
-        for i in range(n_obs):
-            sx = s * x[k, i]
-            xx2 += x[k, i] * x2[k, i]
-            for j in range(width):
-                w1t[k, i, j] += sx * g[k, j]
-        for j in range(width):
-            b1[k, j] += s * g[k, j]
-        c = s * (xx2 + 1.0)
-        for j in range(width):
-            p_next[k, j] = p2[k, j] + c * g[k, j]
-            h_next[k, j] = max(p_next[k, j], 0.0)
-        for a2 in range(w2.shape[1]):
-            acc = 0.0
-            for j in range(width):
-                acc += w2[k, a2, j] * h_next[k, j]
-            q_next[k, a2] = acc + b2[k, a2]
+def _sgd_kernel(w1t, b1, w2, b2, x, p, a, scale, g, x2, p2, p_next, q_next):  # noqa: ANN001, ANN202
+    for k in range(w1t.shape[0]):
+        sgd_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], a[k], scale[k], g[k], x2[k], p2[k],
+                p_next[k], q_next[k])  # fmt: skip
 
 
 class StackedTwoLayer:
@@ -263,17 +275,15 @@ class StackedTwoLayer:
         """
         x = np.ascontiguousarray(x, dtype=self.dtype)
         if reuse is None:
-            k, width = self.b1.shape
-            p, h = np.empty((k, width), self.dtype), np.empty((k, width), self.dtype)
-            q = np.empty(self.b2.shape, self.dtype)
+            p, q = np.empty(self.b1.shape, self.dtype), np.empty(self.b2.shape, self.dtype)
             rows = self.rows
         else:
             rows = np.flatnonzero((x != reuse.x).any(axis=1))
             if not len(rows):
                 return reuse
-            p, h, q = reuse.p, reuse.h, reuse.q  # rows of ``reuse`` that changed: in place
-        _forward_kernel(self.w1t, self.b1, self.w2, self.b2, x, rows, p, h, q)
-        return StackedForward(x, p, h, q)
+            p, q = reuse.p, reuse.q  # rows of ``reuse`` that changed: in place
+        _forward_kernel(self.w1t, self.b1, self.w2, self.b2, x, rows, p, q)
+        return StackedForward(x, p, q)
 
     def td_terms(
         self, f1: StackedForward, a: np.ndarray, f2: StackedForward, b: np.ndarray
@@ -281,7 +291,7 @@ class StackedTwoLayer:
         """Θ1 = Θ((x1,a),(x1,a)), Θ2 = Θ((x1,a),(x2,b)) and ``∂Q_a/∂b_1`` (module docstring)."""
         g = np.empty_like(f1.p)
         theta = np.empty((len(g), 2), self.dtype)
-        _td_kernel(self.w2, f1.x, f1.p, f1.h, f2.x, f2.p, f2.h, _int(a), _int(b), g, theta)
+        _td_kernel(self.w2, f1.x, f1.p, f2.x, f2.p, _int(a), _int(b), g, theta)
         return TDTerms(theta[:, 0], theta[:, 1], g)
 
     def ntk(
@@ -290,7 +300,8 @@ class StackedTwoLayer:
         """Θ((x1, a), (x2, b)) per member (module docstring)."""
         g = self.w2[self.rows, a] * (f1.p > 0.0)
         g2 = self.w2[self.rows, b] * (f2.p > 0.0)
-        out = np.where(a == b, np.einsum("kj,kj->k", f1.h, f2.h) + 1.0, 0.0)
+        h1, h2 = np.maximum(f1.p, 0.0), np.maximum(f2.p, 0.0)
+        out = np.where(a == b, np.einsum("kj,kj->k", h1, h2) + 1.0, 0.0)
         return out + (np.einsum("ki,ki->k", f1.x, f2.x) + 1.0) * np.einsum("kj,kj->k", g, g2)
 
     def sgd_step(
@@ -306,10 +317,10 @@ class StackedTwoLayer:
         (:attr:`TDTerms.grad_b1`).  Returns the forward pass at ``f2.x`` with the new
         parameters, updated from ``f2`` (the pass at s' the step was computed with)."""
         scale = np.ascontiguousarray(scale, dtype=self.dtype)
-        p, h, q = np.empty_like(f2.p), np.empty_like(f2.h), np.empty_like(f2.q)
-        _sgd_kernel(self.w1t, self.b1, self.w2, self.b2, f.x, f.h, _int(a), scale, grad_b1,
-                    f2.x, f2.p, p, h, q)  # fmt: skip
-        return StackedForward(f2.x, p, h, q)
+        p, q = np.empty_like(f2.p), np.empty_like(f2.q)
+        _sgd_kernel(self.w1t, self.b1, self.w2, self.b2, f.x, f.p, _int(a), scale, grad_b1,
+                    f2.x, f2.p, p, q)  # fmt: skip
+        return StackedForward(f2.x, p, q)
 
 
 @njit(**_JIT)
@@ -439,7 +450,7 @@ class FastTwoLayer:
         f = self.stack.forward(
             np.asarray(x, dtype=self.dtype)[None], None if reuse is None else _stacked(reuse)
         )
-        return Forward(f.x[0], f.p[0], f.h[0], f.q[0])
+        return Forward(f.x[0], f.p[0], f.q[0])
 
     def td_terms(self, f1: Forward, a: int, f2: Forward, b: int) -> tuple[float, float, np.ndarray]:
         """(Θ1, Θ2, ∂Q_a/∂b_1) of one controlled step (:meth:`StackedTwoLayer.td_terms`)."""
@@ -457,11 +468,11 @@ class FastTwoLayer:
         forward pass at ``f2.x`` with the new parameters (:meth:`StackedTwoLayer.sgd_step`)."""
         g = self.stack.sgd_step(_stacked(f), np.array([a]), np.array([scale]), grad_b1,
                                 _stacked(f2))  # fmt: skip
-        return Forward(g.x[0], g.p[0], g.h[0], g.q[0])
+        return Forward(g.x[0], g.p[0], g.q[0])
 
 
 def _stacked(f: Forward) -> StackedForward:
-    return StackedForward(f.x[None], f.p[None], f.h[None], f.q[None])
+    return StackedForward(f.x[None], f.p[None], f.q[None])
 
 
 def save_network(net: QNetwork, directory: Path) -> None:

@@ -1,11 +1,11 @@
 """Populations: ``K`` seeds of one configuration trained in one process as one batch.
 
 ``python -m cdqn.train train.population=10 seed=0`` trains seeds 0, 1, …, 9 together.  The
-members' networks are stacked and stepped by the compiled loops a single run uses
-(:class:`cdqn.network.StackedTwoLayer`), their environments step as one
-(:mod:`cdqn.vector_env`) and their controllers run on arrays (:class:`ControllerBank`), so
-the per-step Python of the trainer, the environment and the bookkeeping is paid once for
-``K`` members.
+members' networks are stacked and each step of all of them (forward passes, NTK,
+controllers, SGD steps, signal rows) is two compiled calls built from the row functions a
+single run uses (:mod:`cdqn.population_step`); their environments step as one
+(:mod:`cdqn.vector_env`).  So the per-step Python of the trainer, the environment and the
+bookkeeping is paid once for ``K`` members.
 
 Each member is still its own MLflow run with the content of a single run of its seed
 (params with ``seed`` set to the member's seed and ``train.population=1``, the same tags
@@ -37,13 +37,13 @@ import torch
 from omegaconf import DictConfig, OmegaConf, read_write
 from tqdm.auto import tqdm
 
-from cdqn.agents.base import EpsilonGreedy, StepRecord
-from cdqn.config import Config, TrainConfig, resolve_tracking_uri, validate
+from cdqn.agents.base import StepRecord
+from cdqn.config import Config, resolve_tracking_uri, validate
 from cdqn.control.factory import ControllerSetup, make_controller
-from cdqn.control.runtime import NoControl, RuntimeController, StateSpace, StaticGain
 from cdqn.envs import env_sizes, make_env
 from cdqn.interrupt import GracefulStop
-from cdqn.network import NetworkSpec, QNetwork, StackedForward, StackedTwoLayer, save_network
+from cdqn.network import NetworkSpec, QNetwork, save_network
+from cdqn.population_step import ControlledPopulation
 from cdqn.signals import COLUMNS, SignalBuffer
 from cdqn.sweep import config_hash, ensure_store, final_score, find_finished
 from cdqn.tracking import Recorder, check_tracking, flatten, git_commit
@@ -65,180 +65,6 @@ def member_config(cfg: DictConfig, seed: int) -> DictConfig:
         out.seed = seed
         out.train.population = 1
     return out
-
-
-class ControllerBank:
-    """``K`` copies of one runtime controller, stepped on arrays.
-
-    :class:`NoControl`, :class:`StaticGain` and :class:`StateSpace` run vectorised (the
-    state-space products as stacks of the single run's vector products, so each row is
-    bit-identical); any other controller (e.g. the gain-scheduled H2, whose per-step LQR
-    solve is a few microseconds of scalar arithmetic) runs as ``K`` copies in a loop.
-    """
-
-    def __init__(self, controller: RuntimeController, k: int) -> None:
-        self.kind = type(controller)
-        self.loss_weight = np.full(k, float(controller.loss_weight))
-        if self.kind is StaticGain:
-            assert isinstance(controller, StaticGain)
-            self.k1, self.k2, self.k3 = controller.k1, controller.k2, controller.k3
-        elif self.kind is StateSpace:
-            assert isinstance(controller, StateSpace)
-            self.C, self.D = controller.C[:, None], controller.D[:, None]
-            self.Ad, self.Bd = controller.Ad[None], controller.Bd[None]
-            self.reset_state = controller.reset_state
-            self.x = np.zeros((k, len(controller.C)))
-        elif self.kind is not NoControl:
-            self.copies = [copy.deepcopy(controller) for _ in range(k)]
-
-    def reset(self, i: int) -> None:
-        """Episode start of member ``i``."""
-        if self.kind is StateSpace:
-            if self.reset_state:
-                self.x[i] = 0.0
-        elif self.kind not in (NoControl, StaticGain):
-            self.copies[i].reset()
-
-    def state(self, i: int) -> np.ndarray | None:
-        """Member ``i``'s controller state ``x_c`` (None for static controllers)."""
-        if self.kind is StateSpace:
-            return self.x[i]
-        if self.kind in (NoControl, StaticGain):
-            return None
-        return getattr(self.copies[i], "x", None)
-
-    def step(
-        self,
-        x_e: np.ndarray,
-        q1: np.ndarray,
-        q2: np.ndarray,
-        theta1: np.ndarray,
-        theta2: np.ndarray,
-    ) -> np.ndarray:
-        """``u`` per member, as each member's own controller would return it."""
-        if self.kind is NoControl:
-            return np.zeros_like(q1)
-        if self.kind is StaticGain:
-            return -self.k1 * q1 - self.k2 * q2 + self.k3 * x_e
-        if self.kind is StateSpace:
-            v = np.stack([x_e, q1, q2], axis=1)
-            u = (self.x[:, None, :] @ self.C)[:, 0, 0] + (v[:, None, :] @ self.D)[:, 0, 0]
-            self.x = (self.Ad @ self.x[:, :, None])[:, :, 0] + (self.Bd @ v[:, :, None])[:, :, 0]
-            return u
-        u = np.array(
-            [
-                c.step(*args)
-                for c, *args in zip(
-                    self.copies,
-                    x_e.tolist(),
-                    q1.tolist(),
-                    q2.tolist(),
-                    theta1.tolist(),
-                    theta2.tolist(),
-                    strict=True,
-                )
-            ]
-        )
-        self.loss_weight = np.array([c.loss_weight for c in self.copies])
-        return u
-
-    def select(self, keep: np.ndarray) -> None:
-        self.loss_weight = self.loss_weight[keep]
-        if self.kind is StateSpace:
-            self.x = self.x[keep]
-        elif self.kind not in (NoControl, StaticGain):
-            self.copies = [self.copies[i] for i in keep]
-
-
-class PopulationStep(StepRecord):
-    """A :class:`StepRecord` whose fields are ``(K,)`` arrays (one entry per member)."""
-
-
-class ControlledPopulation:
-    """:class:`cdqn.agents.ControlledAgent` (fast path) for ``K`` members at once.
-
-    Per step and member, exactly the single agent's algorithm (paper Sec. 4, Δt = α):
-    ``Q1``, ``Q2``, Θ1, Θ2; ``e = r + γ Q2 − Q1``; ``x_e ← x_e + α e``;
-    ``u = K(x_e, Q1, Q2)``; ``θ ← θ + α (e + u) ∂Q(s,a)/∂θ``.
-    """
-
-    def __init__(
-        self,
-        nets: list[QNetwork],
-        controller: RuntimeController,
-        cfg: TrainConfig,
-        reset_integrator: bool,
-        rngs: list[np.random.Generator],
-    ) -> None:
-        self.net = StackedTwoLayer.from_networks(nets)
-        self.spec = nets[0].spec
-        self.controller = ControllerBank(controller, len(nets))
-        self.alpha = cfg.lr
-        self.discount = cfg.discount
-        self.bootstrap_terminal = cfg.bootstrap_terminal
-        self.reset_integrator = reset_integrator
-        self.explorers = [EpsilonGreedy(cfg, self.spec.n_actions, rng) for rng in rngs]
-        self.x_e = np.zeros(len(nets))
-        self._f1: StackedForward | None = None
-        self._next: StackedForward | None = None
-        """Forward pass at the last s' with the current parameters (reused at s = s')."""
-
-    def __len__(self) -> int:
-        return len(self.x_e)
-
-    def start_episode(self, i: int) -> None:
-        if self.reset_integrator:
-            self.x_e[i] = 0.0
-        self.controller.reset(i)
-
-    def act(self, obs: np.ndarray) -> np.ndarray:
-        """ε-greedy actions ``(K,)``; the forward pass at ``obs`` is kept for :meth:`update`."""
-        self._f1 = f1 = self.net.forward(obs, reuse=self._next)
-        actions = np.argmax(f1.q, axis=1)
-        for i, explorer in enumerate(self.explorers):
-            random_action = explorer.explore()
-            if random_action is not None:
-                actions[i] = random_action
-        return actions
-
-    def update(
-        self,
-        actions: np.ndarray,
-        reward: np.ndarray,
-        next_obs: np.ndarray,
-        terminated: np.ndarray,
-    ) -> PopulationStep:
-        f1 = self._f1
-        assert f1 is not None, "act() before update()"
-        f2 = self.net.forward(next_obs)
-        a2 = np.argmax(f2.q, axis=1)
-        rows = self.net.rows
-        q1, q2 = f1.q[rows, actions], f2.q[rows, a2]
-        td = self.net.td_terms(f1, actions, f2, a2)
-        q_next = q2 if self.bootstrap_terminal else np.where(terminated, 0.0, q2)
-
-        error = reward + self.discount * q_next - q1
-        self.x_e += self.alpha * error
-        u = self.controller.step(self.x_e, q1, q_next, td.theta1, td.theta2)
-        delta = error + u
-        loss = 0.5 * self.controller.loss_weight * delta * delta
-        self._next = self.net.sgd_step(f1, actions, self.alpha * delta, td.grad_b1, f2)
-        return PopulationStep(loss, q1, q2, u, self.x_e.copy(), td.theta1, td.theta2)
-
-    def select(self, keep: np.ndarray) -> None:
-        """Keep only the members ``keep`` (indices, in that order)."""
-        self.net.select(keep)
-        self.controller.select(keep)
-        self.explorers = [self.explorers[i] for i in keep]
-        self.x_e = self.x_e[keep]
-        if self._next is not None:
-            self._next = StackedForward(*(field[keep] for field in self._next))
-
-    def network(self, i: int) -> QNetwork:
-        """Member ``i``'s network as a :class:`QNetwork`."""
-        net = QNetwork(self.spec)
-        self.net.copy_to(i, net)
-        return net
 
 
 @dataclass
@@ -268,11 +94,12 @@ class _Staging:
         self.n = 0
         self.flushed = np.zeros(k, dtype=np.int64)
 
-    def write(self, block: np.ndarray, members: list[Member]) -> None:
+    def next_block(self, members: list[Member]) -> np.ndarray:
+        """The ``(K, 10)`` block of this step's rows, to be written in place."""
         if self.n == len(self.data):
             self.flush_all(members)
-        self.data[self.n] = block
         self.n += 1
+        return self.data[self.n - 1]
 
     def flush(self, j: int, member: Member) -> None:
         member.signals.extend(self.data[self.flushed[j] : self.n, j])
@@ -326,25 +153,18 @@ def train_population(
         while members:
             actions = agent.act(obs)
             out = venv.step(actions)
-            rec = agent.update(actions, out.reward, out.obs, out.terminated)
-            block = np.stack(
-                [ep, t, out.reward, rec.q1, rec.q2, rec.u, rec.x_e, rec.theta1, rec.theta2,
-                 rec.loss],
-                axis=1,
-            )  # fmt: skip
-            staging.write(block, members)
-            # The trainer's divergence test, first as one cheap array test that every healthy
-            # step passes, then exactly (cdqn.trainer) for the rows that did not.
-            ok = np.isfinite(rec.u + rec.x_e + rec.loss) & (
-                np.maximum(np.abs(rec.q1), np.abs(rec.q2)) <= q_limit
-            )
+            rows = staging.next_block(members)
+            ok = agent.update(actions, out.reward, out.obs, out.terminated, ep, t, rows, q_limit)
+            # ok: the trainer's divergence test as one cheap test that every healthy step
+            # passes; the rows that fail it are tested exactly (cdqn.trainer) below.
             ret += out.reward
             t += 1
             obs = out.obs
             leaving: list[int] = []
             if not ok.all():
                 for j in np.flatnonzero(~ok):
-                    r = StepRecord(*(float(f[j]) for f in rec))
+                    row = rows[j].tolist()
+                    r = StepRecord(row[9], *row[3:9])
                     if (
                         abs(r.q1) <= q_limit
                         and abs(r.q2) <= q_limit
@@ -431,7 +251,8 @@ def build_population(
 
 
 def batchable(conf: Config) -> bool:
-    """Whether :class:`ControlledPopulation` can train this configuration."""
+    """Whether :class:`ControlledPopulation` can train this configuration (its controllers
+    are the runtime controllers :class:`cdqn.population_step.ControllerArrays` knows)."""
     return conf.controller.name != "ddqn" and conf.train.fast_path
 
 

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 
 import gymnasium as gym
 import numpy as np
+from numba import njit
 from tqdm.auto import tqdm
 
 from cdqn.agents.base import Agent, StepRecord
@@ -55,19 +56,35 @@ def episode_stats(
     episode: int, rows: np.ndarray, returns: list[float], discount: float
 ) -> EpisodeStats:
     """Summarise one episode's rows of the signal table (columns of :mod:`cdqn.signals`)."""
-    loss, u, theta1, theta2 = rows[:, 9], rows[:, 5], rows[:, 7], rows[:, 8]
-    finite_loss = loss[np.isfinite(loss)]
-    last = returns[-100:]
+    loss_mean, u_abs_mean, theta1_mean, unstable = _episode_means(rows, discount)
     return EpisodeStats(
         episode=episode,
         episode_return=returns[-1],
-        return_ma100=float(np.mean(last)),
+        return_ma100=float(np.mean(returns[-100:])),
         episode_length=len(rows),
-        loss_mean=float(finite_loss.mean()) if finite_loss.size else float("nan"),
-        u_abs_mean=float(np.abs(u).mean()),
-        theta1_mean=float(theta1.mean()),
-        unstable_fraction=float(np.mean(theta1 < discount * theta2)),
+        loss_mean=loss_mean,
+        u_abs_mean=u_abs_mean,
+        theta1_mean=theta1_mean,
+        unstable_fraction=unstable,
     )
+
+
+@njit(cache=True)
+def _episode_means(rows, discount):  # noqa: ANN001, ANN202
+    """Mean of the finite losses (NaN if none), of |u| and of Θ1, and the share of steps
+    with Θ1 < γ Θ2; one pass over the rows, sums in row order."""
+    loss = u = theta1 = 0.0
+    n_loss = unstable = 0
+    for r in range(rows.shape[0]):
+        if math.isfinite(rows[r, 9]):
+            loss += rows[r, 9]
+            n_loss += 1
+        u += abs(rows[r, 5])
+        theta1 += rows[r, 7]
+        if rows[r, 7] < discount * rows[r, 8]:
+            unstable += 1
+    n = rows.shape[0]
+    return loss / n_loss if n_loss else math.nan, u / n, theta1 / n, unstable / n
 
 
 def train(

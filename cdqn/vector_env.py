@@ -116,6 +116,7 @@ class ClassicControlTwin:
 
     def __init__(self, envs: list[gym.Env]) -> None:
         self.envs = list(envs)
+        self.bases = [_unwrap(env)[0] for env in envs]
         base, self.indices, cap, _ = _unwrap(envs[0])
         self.base = base
         self.cap = cap
@@ -123,6 +124,18 @@ class ClassicControlTwin:
         self.state = np.zeros((len(envs), {CartPoleEnv: 4, AcrobotEnv: 4}.get(self.kind, 2)))
         self.elapsed = np.zeros(len(envs), dtype=np.int64)
         self._two = np.full(len(envs), 2.0)
+        e = base
+        if self.kind is CartPoleEnv:
+            self.params = np.array([
+                e.force_mag, e.gravity, e.masspole, e.total_mass, e.length, e.polemass_length,
+                e.tau, e.kinematics_integrator == "euler", e.x_threshold,
+                e.theta_threshold_radians,
+            ], dtype=np.float64)  # fmt: skip
+        elif self.kind is MountainCarEnv:
+            self.params = np.array([
+                e.force, e.gravity, e.max_speed, e.min_position, e.max_position,
+                e.goal_position, e.goal_velocity,
+            ], dtype=np.float64)  # fmt: skip
 
     @classmethod
     def supports(cls, envs: list[gym.Env]) -> bool:
@@ -145,43 +158,32 @@ class ClassicControlTwin:
 
     def reset(self, i: int, seed: int | None) -> np.ndarray:
         obs = self.envs[i].reset(seed=seed)[0]
-        self.state[i] = np.asarray(_unwrap(self.envs[i])[0].state, dtype=np.float64)
+        self.state[i] = self.bases[i].state
         self.elapsed[i] = 0
         return obs
 
     def select(self, keep: np.ndarray) -> None:
         self.envs = [self.envs[i] for i in keep]
+        self.bases = [self.bases[i] for i in keep]
         self.state, self.elapsed = self.state[keep], self.elapsed[keep]
         self._two = self._two[keep]
 
     def step(self, actions: np.ndarray) -> VectorStep:
-        actions = np.asarray(actions)
-        if self.kind is CartPoleEnv:
-            obs, reward, terminated = self._cartpole(actions)
-        elif self.kind is AcrobotEnv:
-            obs, reward, terminated = self._acrobot(actions)
+        k = len(actions)
+        if self.kind is AcrobotEnv:
+            obs, reward, terminated = self._acrobot(np.asarray(actions))
+            self.elapsed += 1
+            truncated = self.elapsed >= self.cap if self.cap is not None else np.zeros(k, bool)
         else:
-            obs, reward, terminated = self._mountaincar(actions)
+            obs = np.empty(self.state.shape, np.float32)
+            reward, terminated, truncated = np.empty(k), np.empty(k, bool), np.empty(k, bool)
+            kernel = _cartpole_kernel if self.kind is CartPoleEnv else _mountaincar_kernel
+            kernel(self.state, np.ascontiguousarray(actions, np.int64), self.params, obs, reward,
+                   terminated)  # fmt: skip
+            _count_steps(self.elapsed, -1 if self.cap is None else self.cap, truncated)
         if self.indices is not None:
             obs = obs[:, self.indices]
-        self.elapsed += 1
-        truncated = (
-            self.elapsed >= self.cap if self.cap is not None else np.zeros(len(actions), bool)
-        )
         return VectorStep(obs, reward, terminated, truncated)
-
-    def _cartpole(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """gymnasium ``CartPoleEnv.step`` for every member (:func:`_cartpole_kernel`)."""
-        e = self.base
-        obs = np.empty(self.state.shape, np.float32)
-        terminated = np.empty(len(action), np.bool_)
-        _cartpole_kernel(
-            self.state, np.ascontiguousarray(action, np.int64), e.force_mag, e.gravity,
-            e.masspole, e.total_mass, e.length, e.polemass_length, e.tau,
-            e.kinematics_integrator == "euler", e.x_threshold, e.theta_threshold_radians,
-            obs, terminated,
-        )  # fmt: skip
-        return obs, np.ones(len(action)), terminated
 
     def _dsdt(self, s: np.ndarray) -> np.ndarray:
         """gymnasium ``AcrobotEnv._dsdt`` on rows ``[θ1, θ2, θ̇1, θ̇2, torque]``."""
@@ -242,24 +244,22 @@ class ClassicControlTwin:
         ).astype(np.float32)
         return obs, np.where(terminated, 0.0, -1.0), terminated
 
-    def _mountaincar(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """gymnasium ``MountainCarEnv.step`` for every member (:func:`_mountaincar_kernel`)."""
-        e = self.base
-        obs = np.empty(self.state.shape, np.float32)
-        terminated = np.empty(len(action), np.bool_)
-        _mountaincar_kernel(
-            self.state, np.ascontiguousarray(action, np.int64), e.force, e.gravity, e.max_speed,
-            e.min_position, e.max_position, e.goal_position, e.goal_velocity, obs, terminated,
-        )  # fmt: skip
-        return obs, np.full(len(action), -1.0), terminated
+
+@njit(cache=True)
+def _count_steps(elapsed, cap, truncated):  # noqa: ANN001, ANN202
+    """gymnasium's ``TimeLimit``: count the step, truncate at ``cap`` (−1: no limit)."""
+    for k in range(elapsed.shape[0]):
+        elapsed[k] += 1
+        truncated[k] = cap >= 0 and elapsed[k] >= cap
 
 
 @njit(cache=True)  # strict IEEE arithmetic (no fastmath), libm cos/sin as gymnasium's NumPy
-def _cartpole_kernel(state, action, force_mag, gravity, masspole, total_mass, length,
-                     polemass_length, tau, euler, x_threshold, theta_threshold, obs,
-                     terminated):  # fmt: skip
+def _cartpole_kernel(state, action, params, obs, reward, terminated):  # noqa: ANN001, ANN202
     """gymnasium ``CartPoleEnv.step`` on each row of ``state`` (in place), operation for
-    operation in gymnasium's order."""
+    operation in gymnasium's order; ``params`` as :class:`ClassicControlTwin` packs them."""
+    force_mag, gravity, masspole, total_mass = params[0], params[1], params[2], params[3]
+    length, polemass_length, tau, euler = params[4], params[5], params[6], params[7] != 0.0
+    x_threshold, theta_threshold = params[8], params[9]
     for k in range(state.shape[0]):
         x, x_dot, theta, theta_dot = state[k, 0], state[k, 1], state[k, 2], state[k, 3]
         force = force_mag if action[k] == 1 else -force_mag
@@ -289,13 +289,15 @@ def _cartpole_kernel(state, action, force_mag, gravity, masspole, total_mass, le
             or theta < -theta_threshold
             or theta > theta_threshold
         )
+        reward[k] = 1.0
 
 
 @njit(cache=True)  # strict IEEE arithmetic (no fastmath), libm cos as gymnasium's math.cos
-def _mountaincar_kernel(state, action, force, gravity, max_speed, min_position,
-                        max_position, goal_position, goal_velocity, obs, terminated):  # fmt: skip
+def _mountaincar_kernel(state, action, params, obs, reward, terminated):  # noqa: ANN001, ANN202
     """gymnasium ``MountainCarEnv.step`` on each row of ``state`` (in place), operation for
     operation in gymnasium's order (``np.clip`` as min/max)."""
+    force, gravity, max_speed, min_position = params[0], params[1], params[2], params[3]
+    max_position, goal_position, goal_velocity = params[4], params[5], params[6]
     for k in range(state.shape[0]):
         position, velocity = state[k, 0], state[k, 1]
         velocity = velocity + ((action[k] - 1) * force + math.cos(3 * position) * (-gravity))
@@ -307,6 +309,7 @@ def _mountaincar_kernel(state, action, force, gravity, max_speed, min_position,
         terminated[k] = position >= goal_position and velocity >= goal_velocity
         state[k, 0], state[k, 1] = position, velocity
         obs[k, 0], obs[k, 1] = position, velocity
+        reward[k] = -1.0
 
 
 def make_vector_env(envs: list[gym.Env]) -> VectorEnv:

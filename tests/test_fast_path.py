@@ -1,6 +1,7 @@
 """The fast paths compute what the definitions say: stacked networks equal single ones bit
-for bit, the closed-form H2 gain equals the Hamiltonian solution, and Double DQN's
-hand-written minibatch step equals torch autograd's."""
+for bit, the closed-form H2 gain equals the Hamiltonian solution, the compiled controllers
+follow their formulas, and Double DQN's hand-written minibatch step equals torch
+autograd's."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from cdqn import bench
 from cdqn.agents.ddqn import DDQNAgent
 from cdqn.config import ControllerConfig, TrainConfig
 from cdqn.control.h2 import LQRError, h2_gains, h2_gains_batch, h2_gains_reference
+from cdqn.control.runtime import ScheduledLQR, StateSpace
 from cdqn.network import (
     FastTwoLayer,
     NetworkSpec,
@@ -135,6 +137,36 @@ def test_h2_batch_equals_scalar_bit_for_bit() -> None:
     batch = h2_gains_batch(theta1, theta2, 1.0, w_x, 2e4)
     scalar = [h2_gains(t1, t2, 1.0, w_x, 2e4) for t1, t2 in zip(theta1, theta2, strict=True)]
     assert np.array_equal(batch, np.array(scalar))
+
+
+def test_compiled_state_space_step_is_the_matrix_recursion() -> None:
+    """``u = C x + D v``, ``x ← A_d x + B_d v`` with ``v = [x_e, Q1, Q2]``."""
+    gen = np.random.default_rng(0)
+    A = gen.normal(size=(4, 4)) - 5 * np.eye(4)
+    B, C, D = gen.normal(size=(4, 3)), gen.normal(size=4), gen.normal(size=3)
+    ctrl = StateSpace(A, B, C, D, 1e-2, "tustin", reset_state=True)
+    x = np.zeros(4)
+    for _ in range(50):
+        v = gen.normal(size=3)
+        u = ctrl.step(*v, 300.0, 310.0)
+        np.testing.assert_allclose(u, C @ x + D @ v, rtol=1e-12, atol=1e-12)
+        x = ctrl.Ad @ x + ctrl.Bd @ v
+        np.testing.assert_allclose(ctrl.x, x, rtol=1e-12, atol=1e-12)
+    assert np.abs(x).sum() > 0
+    ctrl.reset()
+    assert not ctrl.x.any()
+
+
+def test_scheduled_lqr_keeps_its_last_gains_where_no_lqr_exists() -> None:
+    ctrl = ScheduledLQR(1.0, [1.0, 3e4, 10.0], 2e4, "research")
+    ctrl.step(0.1, 2.0, 2.1, 300.0, 310.0)
+    solved = ctrl.gains
+    k1, k2, k3 = h2_gains(300.0, 310.0, 1.0, np.array([1.0, 3e4, 10.0]), 2e4)
+    assert solved == (k3, -k2, k1)  # the research code's assignment
+    assert ctrl.loss_weight == 1.0 / (1.0 + solved[0])
+    u = ctrl.step(0.3, 1.0, 1.5, 300.0, 0.0)  # Θ2 = 0: no stabilising LQR
+    assert ctrl.unsolved_steps == 1 and ctrl.gains == solved
+    assert u == -solved[0] * 1.0 - solved[1] * 1.5 + solved[2] * 0.3
 
 
 def test_h2_without_integrator_weight_has_no_stabilising_solution() -> None:

@@ -8,7 +8,8 @@ import pytest
 from mlflow.tracking import MlflowClient
 from omegaconf import OmegaConf
 
-from cdqn.config import EnvConfig
+from cdqn.agents.base import EpsilonGreedy
+from cdqn.config import EnvConfig, TrainConfig
 from cdqn.control.factory import make_controller
 from cdqn.envs import make_env
 from cdqn.population import (
@@ -18,6 +19,7 @@ from cdqn.population import (
     run_population,
     train_population,
 )
+from cdqn.population_step import ExplorationPlan
 from cdqn.signals import SignalBuffer
 from cdqn.train import build, run
 from cdqn.trainer import DivergenceError, TrainState, train
@@ -132,13 +134,22 @@ def _population(overrides: list[str], seeds: list[int]) -> list[Member]:
 
 
 @pytest.mark.parametrize(
-    ("env", "controller"),
-    [("cartpole", "none"), ("cartpole", "hinf_f"), ("cartpole", "h2"), ("acrobot", "hinf")],
+    ("env", "controller", "extra"),
+    [
+        ("cartpole", "none", []),
+        ("cartpole", "hinf_f", []),
+        ("cartpole", "h2", []),
+        ("acrobot", "hinf", []),
+        ("mountaincar", "hinf", ["network.dtype=float32"]),
+        ("cartpole", "h2", ["controller.h2_gain_map=paper", "train.bootstrap_terminal=false"]),
+    ],
 )
-def test_population_members_step_exactly_as_single_runs(env: str, controller: str) -> None:
+def test_population_members_step_exactly_as_single_runs(
+    env: str, controller: str, extra: list[str]
+) -> None:
     """Every per-step signal (Q1, Q2, u, x_e, Θ1, Θ2, loss) and every return of a member
     equals the single run of its seed, bit for bit."""
-    overrides = [*BASE, f"env={env}", f"controller={controller}"]
+    overrides = [*BASE, f"env={env}", f"controller={controller}", *extra]
     if env == "acrobot":
         overrides += ["train.episodes=2"]
     members = _population(overrides, [3, 4, 5])
@@ -149,6 +160,25 @@ def test_population_members_step_exactly_as_single_runs(env: str, controller: st
         assert np.array_equal(m.signals.state(), rows)
         if controller != "none":
             assert np.abs(rows[:, 5]).sum() > 0  # u acted
+
+
+@pytest.mark.parametrize("n_actions", [2, 3])
+def test_exploration_drawn_ahead_equals_epsilon_greedy(n_actions: int) -> None:
+    """Decisions drawn ahead in blocks (populations) are the decisions, and leave the
+    generator in the state, of one ``EpsilonGreedy.explore`` call per step (single runs)."""
+    cfg = TrainConfig(eps_start=1.0, eps_end=0.05, eps_dec=2e-3)
+    steps = 2000
+    explorer = EpsilonGreedy(cfg, n_actions, np.random.default_rng(7))
+    expected = [explorer.explore() for _ in range(steps)]
+    plan = ExplorationPlan(cfg, n_actions, [np.random.default_rng(7)], block=300)
+    drawn = [int(plan.next()[0]) for _ in range(steps)]
+    assert drawn == [-1 if a is None else a for a in expected]
+    assert 0 < sum(a is None for a in expected) < steps  # both kinds of decision occur
+    # the plan has drawn to the end of its block (2100 decisions): so has the explorer
+    tail = [explorer.explore() for _ in range(100)]
+    assert [-1 if a is None else a for a in tail] == plan.plan[200:, 0].tolist()
+    assert explorer.rng.bit_generator.state == plan.rngs[0].bit_generator.state
+    assert explorer.epsilon == plan.epsilon[0] < cfg.eps_start
 
 
 def test_diverging_members_fail_as_their_single_runs_do() -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any, NamedTuple, Protocol
 
 import numpy as np
+from numba import njit
 
 from cdqn.config import TrainConfig
 
@@ -63,3 +64,24 @@ class EpsilonGreedy:
         if self.epsilon >= self.eps_end:
             self.epsilon -= self.eps_dec
         return int(self.rng.integers(self.n_actions))
+
+
+@njit(cache=True)
+def explore_ahead(rng, epsilon, eps_end, eps_dec, n_actions, out):  # noqa: ANN001, ANN201
+    """The next ``len(out)`` decisions of :meth:`EpsilonGreedy.explore` from ``rng`` and
+    ``epsilon``: ``out[i]`` is the random action of step ``i`` or −1 (greedy).  Returns ε
+    after them.
+
+    Exploration depends on nothing but its generator and ε, so its decisions can be drawn
+    ahead.  numba's ``Generator.random``/``integers`` advance the NumPy generator's own
+    bit generator with NumPy's algorithms, so the draws, and the generator's state after
+    them, are those of ``len(out)`` calls of ``explore`` (``tests/test_population.py``).
+    """
+    for i in range(out.shape[0]):
+        if rng.random() > epsilon:
+            out[i] = -1
+            continue
+        if epsilon >= eps_end:
+            epsilon -= eps_dec
+        out[i] = rng.integers(0, n_actions)
+    return epsilon

@@ -47,10 +47,10 @@ for arrays of operating points (one per member of a population).
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
+from numba import njit
 
+from cdqn.control.kernels import H2_SOLVED, H2_UNCONTROLLABLE, h2_closed_form
 from cdqn.control.plant import augmented_plant, check_plant, reduction_basis
 
 
@@ -74,88 +74,46 @@ def lqr_gain(A: np.ndarray, B: np.ndarray, w_x: np.ndarray, w_c: float) -> np.nd
     return (b.T @ X).ravel() / w_c
 
 
-_NEWTON_ITERATIONS = 100
-"""Cap on Newton steps; they converge in two or three, and stop when they stop moving."""
-
-
 def h2_gains(
     theta1: float, theta2: float, discount: float, w_x: np.ndarray, w_c: float
 ) -> tuple[float, float, float]:
     """The paper's (k1, k2, k3) of the LQR on the augmented model at (Θ1, Θ2), in closed
-    form (module docstring); raises :class:`LQRError` where no stabilising LQR exists."""
+    form (module docstring, compiled in :func:`cdqn.control.kernels.h2_closed_form`);
+    raises :class:`LQRError` where no stabilising LQR exists."""
     a, b, g = float(theta1), float(theta2), float(discount)
     w1, w2, w3 = np.asarray(w_x, dtype=float).tolist()
-    wc = float(w_c)
-    agb = a * g * b
-    if agb == 0.0 or w3 <= 0.0 or wc <= 0.0:
+    k1, k2, k3, status = h2_closed_form(a, b, g, w1, w2, w3, float(w_c))
+    if status == H2_UNCONTROLLABLE:
         raise LQRError(
             f"no stabilising LQR at Θ1={a}, Θ2={b}, γ={g}, w3={w3}: the integrator state "
             "x_e must be controllable through Θ1, Θ2 and weighted (w3 > 0)"
         )
-    c = a - g * b
-    s = a * a / wc
-    p1 = c * c + s * w1
-    p2 = s * ((w1 * g * g + w2) * b * b + w3)
-    e3 = math.sqrt(s * w3) * abs(g * b)
-    e = 3.0 * math.sqrt(2.0 * max(abs(p1), math.sqrt(abs(p2)), (0.5 * e3 * e3) ** (1 / 3)))
-    for _ in range(2):
-        e = math.sqrt(p1 + 2.0 * math.sqrt(p2 + 2.0 * e3 * e))
-    for _ in range(_NEWTON_ITERATIONS):
-        y = e * e - p1
-        new = e - (0.25 * y * y - 2.0 * e3 * e - p2) / (e * y - 2.0 * e3)
-        if not new < e:  # monotone from above: no further decrease means converged
-            break
-        e = new
-    e1 = e
-    e2 = 0.5 * (e1 * e1 - p1)
-    if not (e1 > 0.0 and e2 > 0.0 and e1 * e2 > e3 > 0.0):
+    if status != H2_SOLVED:
         raise LQRError(f"no stabilising LQR at Θ1={a}, Θ2={b} (closed loop not Hurwitz)")
-    k1 = (e1 - c) / a
-    k3 = e3 / agb
-    k2 = -(e2 + agb * k1 + a * k3) / (a * b)
-    return k1, k2, -k3
+    return k1, k2, k3
+
+
+@njit(cache=True)
+def _h2_batch(a, b, g, w1, w2, w3, wc, out):  # noqa: ANN001, ANN202
+    worst = H2_SOLVED
+    for i in range(a.shape[0]):
+        out[i, 0], out[i, 1], out[i, 2], status = h2_closed_form(a[i], b[i], g, w1, w2, w3, wc)
+        worst = max(worst, status)
+    return worst
 
 
 def h2_gains_batch(
     theta1: np.ndarray, theta2: np.ndarray, discount: float, w_x: np.ndarray, w_c: float
 ) -> np.ndarray:
-    """:func:`h2_gains` for arrays of operating points; returns ``(n, 3)`` gains.
-
-    The same formulas, vectorised; it agrees with :func:`h2_gains` to rounding (the
-    Newton iterates run in lockstep until every point has converged).
-    """
-    a = np.asarray(theta1, dtype=float)
-    b = np.asarray(theta2, dtype=float)
-    g = float(discount)
+    """:func:`h2_gains` for arrays of operating points; returns ``(n, 3)`` gains, equal to
+    :func:`h2_gains` at each point."""
+    a = np.ascontiguousarray(theta1, dtype=float).ravel()
+    b = np.ascontiguousarray(theta2, dtype=float).ravel()
     w1, w2, w3 = np.asarray(w_x, dtype=float).tolist()
-    wc = float(w_c)
-    agb = a * g * b
-    if np.any(agb == 0.0) or w3 <= 0.0 or wc <= 0.0:
-        raise LQRError("no stabilising LQR: some Θ1·γ·Θ2 is zero or w3 <= 0")
-    c = a - g * b
-    s = a * a / wc
-    p1 = c * c + s * w1
-    p2 = s * ((w1 * g * g + w2) * b * b + w3)
-    e3 = np.sqrt(s * w3) * np.abs(g * b)
-    cube_root = np.power(0.5 * e3 * e3, np.full_like(e3, 1 / 3))  # libm pow, as ** in h2_gains
-    bound = np.maximum(np.maximum(np.abs(p1), np.sqrt(np.abs(p2))), cube_root)
-    e = 3.0 * np.sqrt(2.0 * bound)
-    for _ in range(2):
-        e = np.sqrt(p1 + 2.0 * np.sqrt(p2 + 2.0 * e3 * e))
-    for _ in range(_NEWTON_ITERATIONS):
-        y = e * e - p1
-        new = e - (0.25 * y * y - 2.0 * e3 * e - p2) / (e * y - 2.0 * e3)
-        moving = new < e
-        if not moving.any():
-            break
-        e = np.where(moving, new, e)
-    e2 = 0.5 * (e * e - p1)
-    if not np.all((e > 0.0) & (e2 > 0.0) & (e * e2 > e3) & (e3 > 0.0)):
-        raise LQRError("no stabilising LQR at some operating point (closed loop not Hurwitz)")
-    k1 = (e - c) / a
-    k3 = e3 / agb
-    k2 = -(e2 + agb * k1 + a * k3) / (a * b)
-    return np.stack([k1, k2, -k3], axis=-1)
+    out = np.empty((len(a), 3))
+    if _h2_batch(a, b, float(discount), w1, w2, w3, float(w_c), out) != H2_SOLVED:
+        raise LQRError("no stabilising LQR at some operating point")
+    return out.reshape(np.shape(theta1) + (3,))
 
 
 def h2_gains_reference(

@@ -12,7 +12,7 @@ from typing import Protocol
 import numpy as np
 import scipy.linalg
 
-from cdqn.control.h2 import LQRError, h2_gains
+from cdqn.control.kernels import scheduled_lqr_step, state_space_step, static_gain_u
 
 
 class RuntimeController(Protocol):
@@ -51,7 +51,7 @@ class StaticGain:
         pass
 
     def step(self, x_e: float, q1: float, q2: float, theta1: float, theta2: float) -> float:
-        return -self.k1 * q1 - self.k2 * q2 + self.k3 * x_e
+        return static_gain_u(self.k1, self.k2, self.k3, x_e, q1, q2)
 
 
 class ScheduledLQR:
@@ -71,29 +71,30 @@ class ScheduledLQR:
     ) -> None:
         if gain_map not in ("paper", "research"):
             raise ValueError(f"controller.h2_gain_map={gain_map!r}: allowed paper, research")
-        self.discount = discount
+        self.discount = float(discount)
         self.w_x = np.asarray(w_x, dtype=float)
         self.w_c = float(w_c)
         self.research_map = gain_map == "research"
-        self.gains = (0.0, 0.0, 0.0)
+        self._gains = np.zeros(3)
         self.loss_weight = 1.0
         self.unsolved_steps = 0
+
+    @property
+    def gains(self) -> tuple[float, float, float]:
+        """The gains (k1, k2, k3) of the last step that had an LQR solution."""
+        return tuple(self._gains.tolist())  # type: ignore[return-value]
 
     def reset(self) -> None:
         pass
 
     def step(self, x_e: float, q1: float, q2: float, theta1: float, theta2: float) -> float:
-        try:
-            k1, k2, k3 = h2_gains(theta1, theta2, self.discount, self.w_x, self.w_c)
-        except LQRError:
+        u, self.loss_weight, solved = scheduled_lqr_step(
+            theta1, theta2, self.discount, self.w_x, self.w_c, self.research_map, self._gains,
+            x_e, q1, q2,
+        )  # fmt: skip
+        if not solved:
             self.unsolved_steps += 1
-            k1, k2, k3 = self.gains
-        else:
-            if self.research_map:
-                k1, k2, k3 = k3, -k2, k1
-            self.gains = (k1, k2, k3)
-            self.loss_weight = 1.0 / (1.0 + k1)
-        return -k1 * q1 - k2 * q2 + k3 * x_e
+        return u
 
 
 def discretize(
@@ -140,14 +141,15 @@ class StateSpace:
         reset_state: bool = True,
     ) -> None:
         A, B = np.atleast_2d(np.asarray(A, float)), np.atleast_2d(np.asarray(B, float))
-        self.C = np.asarray(C, float).reshape(-1)
-        self.D = np.zeros(3) if D is None or np.size(D) == 0 else np.asarray(D, float).ravel()
+        self.C = np.ascontiguousarray(np.asarray(C, float).reshape(-1))
+        no_d = D is None or np.size(D) == 0
+        self.D = np.zeros(3) if no_d else np.ascontiguousarray(np.asarray(D, float).ravel())
         if B.shape != (A.shape[0], 3) or self.C.shape != (A.shape[0],):
             raise ValueError(
                 f"controller matrices must be A n×n, B n×3, C 1×n; got {A.shape}, {B.shape}, "
                 f"{self.C.shape}"
             )
-        self.Ad, self.Bd = discretize(A, B, dt, method)
+        self.Ad, self.Bd = (np.ascontiguousarray(m) for m in discretize(A, B, dt, method))
         self.reset_state = reset_state
         self.x = np.zeros(A.shape[0])
 
@@ -156,7 +158,4 @@ class StateSpace:
             self.x[:] = 0.0
 
     def step(self, x_e: float, q1: float, q2: float, theta1: float, theta2: float) -> float:
-        v = np.array([x_e, q1, q2])
-        u = float(self.C @ self.x + self.D @ v)
-        self.x = self.Ad @ self.x + self.Bd @ v
-        return u
+        return state_space_step(self.Ad, self.Bd, self.C, self.D, self.x, x_e, q1, q2)

@@ -1,0 +1,299 @@
+"""The controlled agent of a population: ``K`` members' steps as two compiled calls.
+
+:class:`ControlledPopulation` is :class:`cdqn.agents.ControlledAgent` (fast path) for ``K``
+members at once.  Per step and member it runs exactly the single agent's algorithm
+(paper Sec. 4, Δt = α):
+
+1. act: ε-greedy on ``Q(s, ·)``, the forward pass at ``s`` being the one the last update
+   left (``s`` = the last ``s'``) unless the episode restarted;
+2. update: ``Q(s', ·)``, ``a' = argmax``, ``Q1 = Q(s, a)``, ``Q2 = Q(s', a')``, Θ1, Θ2;
+   ``e = r + γ Q̂2 − Q1``; ``x_e ← x_e + α e``; ``u = K(x_e, Q1, Q̂2)``;
+   ``θ ← θ + α (e + u) ∂Q(s,a)/∂θ``; the step's signal row; the divergence pre-check.
+
+Each is one compiled loop over the members (:func:`_act_kernel`, :func:`_update_kernel`)
+built from the row functions a single run uses (:func:`cdqn.network.forward_row`,
+:func:`cdqn.network.td_row`, :func:`cdqn.network.sgd_row`) and the controller arithmetic of
+:mod:`cdqn.control.kernels`, so the per-step Python is paid once for ``K`` members and each
+member computes the numbers of the single run of its seed, bit for bit
+(``tests/test_population.py``).  Exploration is drawn ahead in blocks
+(:func:`cdqn.agents.base.explore_ahead`); it depends on nothing but each member's generator.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from cdqn.agents.base import explore_ahead
+from cdqn.config import TrainConfig
+from cdqn.control.kernels import scheduled_lqr_step, state_space_step, static_gain_u
+from cdqn.control.runtime import (
+    NoControl,
+    RuntimeController,
+    ScheduledLQR,
+    StateSpace,
+    StaticGain,
+)
+from cdqn.network import QNetwork, StackedTwoLayer, forward_row, sgd_row, td_row
+
+NO_CONTROL, STATIC_GAIN, STATE_SPACE, SCHEDULED_LQR = 0, 1, 2, 3
+_KINDS = {NoControl: NO_CONTROL, StaticGain: STATIC_GAIN, StateSpace: STATE_SPACE,
+          ScheduledLQR: SCHEDULED_LQR}  # fmt: skip
+
+
+def batchable_controller(controller: RuntimeController) -> bool:
+    """Whether :class:`ControllerArrays` can run this runtime controller."""
+    return type(controller) in _KINDS
+
+
+@dataclass
+class ControllerArrays:
+    """``K`` copies of one runtime controller as arrays, stepped inside the update kernel.
+
+    ``gains`` ``(K, 3)``: static gains, or the H2 controller's last gains; ``loss_weight``
+    ``(K,)``; ``Ad, Bd, C, D`` and the states ``x`` ``(K, n)`` of a state-space controller
+    (empty otherwise); ``w_x, w_c, research`` of the scheduled H2 and its per-member count
+    of steps without an LQR solution, ``unsolved``.
+    """
+
+    kind: int
+    gains: np.ndarray
+    loss_weight: np.ndarray
+    Ad: np.ndarray
+    Bd: np.ndarray
+    C: np.ndarray
+    D: np.ndarray
+    x: np.ndarray
+    w_x: np.ndarray
+    w_c: float
+    research: bool
+    reset_state: bool
+    unsolved: np.ndarray
+
+    @classmethod
+    def of(cls, controller: RuntimeController, k: int) -> ControllerArrays:
+        if not batchable_controller(controller):
+            raise TypeError(f"{type(controller).__name__} has no batched form")
+        kind = _KINDS[type(controller)]
+        gains = np.zeros((k, 3))
+        Ad = Bd = np.zeros((0, 0))
+        C = D = w_x = np.zeros(0)
+        n = 0
+        w_c, research, reset_state = 0.0, False, False
+        if isinstance(controller, StaticGain):
+            gains[:] = (controller.k1, controller.k2, controller.k3)
+        elif isinstance(controller, StateSpace):
+            Ad, Bd, C, D = controller.Ad, controller.Bd, controller.C, controller.D
+            n, reset_state = len(C), controller.reset_state
+        elif isinstance(controller, ScheduledLQR):
+            gains[:] = controller.gains
+            w_x, w_c, research = controller.w_x, controller.w_c, controller.research_map
+        return cls(
+            kind, gains, np.full(k, float(controller.loss_weight)), Ad, Bd, C, D,
+            np.zeros((k, n)), w_x, w_c, research, reset_state, np.zeros(k, dtype=np.int64),
+        )  # fmt: skip
+
+    def reset(self, i: int) -> None:
+        """Episode start of member ``i``."""
+        if self.reset_state:
+            self.x[i] = 0.0
+
+    def state(self, i: int) -> np.ndarray | None:
+        """Member ``i``'s controller state ``x_c`` (None for static controllers)."""
+        return self.x[i] if self.kind == STATE_SPACE else None
+
+    def select(self, keep: np.ndarray) -> None:
+        self.gains, self.loss_weight = self.gains[keep], self.loss_weight[keep]
+        self.x, self.unsolved = self.x[keep], self.unsolved[keep]
+
+
+class ExplorationPlan:
+    """ε-greedy decisions of ``K`` members, drawn ``block`` steps ahead from each member's
+    generator (:func:`cdqn.agents.base.explore_ahead`)."""
+
+    def __init__(
+        self, cfg: TrainConfig, n_actions: int, rngs: list[np.random.Generator], block: int = 512
+    ) -> None:
+        self.rngs = list(rngs)
+        self.epsilon = np.full(len(rngs), float(cfg.eps_start))
+        self.eps_end, self.eps_dec = float(cfg.eps_end), float(cfg.eps_dec)
+        self.n_actions = n_actions
+        self.plan = np.empty((block, len(rngs)), dtype=np.int64)
+        self.pos = block
+
+    def next(self) -> np.ndarray:
+        """This step's decisions ``(K,)``: a random action, or −1 for the greedy one."""
+        if self.pos == len(self.plan):
+            for k, rng in enumerate(self.rngs):
+                self.epsilon[k] = explore_ahead(
+                    rng, self.epsilon[k], self.eps_end, self.eps_dec, self.n_actions,
+                    self.plan[:, k],
+                )  # fmt: skip
+            self.pos = 0
+        self.pos += 1
+        return self.plan[self.pos - 1]
+
+    def select(self, keep: np.ndarray) -> None:
+        self.rngs = [self.rngs[i] for i in keep]
+        self.epsilon, self.plan = self.epsilon[keep], np.ascontiguousarray(self.plan[:, keep])
+
+
+class ControlledPopulation:
+    """:class:`cdqn.agents.ControlledAgent` (fast path) for ``K`` members at once (module
+    docstring)."""
+
+    def __init__(
+        self,
+        nets: list[QNetwork],
+        controller: RuntimeController,
+        cfg: TrainConfig,
+        reset_integrator: bool,
+        rngs: list[np.random.Generator],
+    ) -> None:
+        self.net = StackedTwoLayer.from_networks(nets)
+        self.spec = spec = nets[0].spec
+        k, dtype = len(nets), self.net.dtype
+        self.controller = ControllerArrays.of(controller, k)
+        self.explore = ExplorationPlan(cfg, spec.n_actions, rngs)
+        self.hyper = np.array([cfg.lr, cfg.discount])
+        self.bootstrap_terminal = bool(cfg.bootstrap_terminal)
+        self.reset_integrator = reset_integrator
+        self.x_e = np.zeros(k)
+        # Each member's forward pass at s with its current parameters: input (NaN: none
+        # yet), pre-activation, Q-values.  The update leaves the pass at s' in them.
+        self.x = np.full((k, spec.n_obs), np.nan, dtype)
+        self.p = np.empty((k, spec.width), dtype)
+        self.q = np.empty((k, spec.n_actions), dtype)
+        # One member's step at a time: the pass at s' and ∂Q_a/∂b_1 (kept small so that
+        # they stay in cache); Θ1, Θ2 and α δ rounded to the network's dtype, as the
+        # single run's arrays hold them.
+        self.scratch = (
+            np.empty(spec.n_obs, dtype),
+            np.empty(spec.width, dtype),
+            np.empty(spec.n_actions, dtype),
+            np.empty(spec.width, dtype),
+            np.empty(3, dtype),
+        )
+        self.actions = np.empty(k, dtype=np.int64)
+        self.ok = np.empty(k, dtype=np.bool_)
+
+    def __len__(self) -> int:
+        return len(self.x_e)
+
+    def start_episode(self, i: int) -> None:
+        if self.reset_integrator:
+            self.x_e[i] = 0.0
+        self.controller.reset(i)
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        """ε-greedy actions ``(K,)`` (the array is reused by the next call)."""
+        n = self.net
+        _act_kernel(n.w1t, n.b1, n.w2, n.b2, obs, self.x, self.p, self.q, self.explore.next(),
+                    self.actions)  # fmt: skip
+        return self.actions
+
+    def update(
+        self,
+        actions: np.ndarray,
+        reward: np.ndarray,
+        next_obs: np.ndarray,
+        terminated: np.ndarray,
+        ep: np.ndarray,
+        t: np.ndarray,
+        rows: np.ndarray,
+        q_limit: float,
+    ) -> np.ndarray:
+        """One controlled step of every member; writes each member's signal row (columns of
+        :data:`cdqn.signals.COLUMNS`, episode ``ep`` and step ``t``) into ``rows`` and
+        returns the divergence pre-check per member: ``u + x_e + loss`` finite and
+        ``max(|Q1|, |Q2|) ≤ q_limit`` (the array is reused by the next call)."""
+        n, c = self.net, self.controller
+        _update_kernel(
+            n.w1t, n.b1, n.w2, n.b2, self.x, self.p, self.q, *self.scratch, actions, reward,
+            next_obs, terminated, self.hyper, self.bootstrap_terminal, c.kind, c.gains,
+            c.loss_weight, c.Ad, c.Bd, c.C, c.D, c.x, c.w_x, c.w_c, c.research, c.unsolved,
+            self.x_e, ep, t, rows, q_limit, self.ok,
+        )  # fmt: skip
+        return self.ok
+
+    def select(self, keep: np.ndarray) -> None:
+        """Keep only the members ``keep`` (indices, in that order)."""
+        self.net.select(keep)
+        self.controller.select(keep)
+        self.explore.select(keep)
+        self.x_e = self.x_e[keep]
+        self.x, self.p, self.q = self.x[keep], self.p[keep], self.q[keep]
+        self.actions, self.ok = self.actions[keep], self.ok[keep]
+
+    def network(self, i: int) -> QNetwork:
+        """Member ``i``'s network as a :class:`QNetwork`."""
+        net = QNetwork(self.spec)
+        self.net.copy_to(i, net)
+        return net
+
+
+@njit(cache=True)
+def _act_kernel(w1t, b1, w2, b2, obs, x, p, q, plan, actions):  # noqa: ANN001, ANN202
+    """Per member: the forward pass at ``obs`` unless ``x`` already holds it (as
+    :meth:`cdqn.network.StackedTwoLayer.forward` with ``reuse``), then the planned random
+    action or ``argmax Q(obs, ·)``."""
+    for k in range(obs.shape[0]):
+        same = True
+        for i in range(obs.shape[1]):
+            if obs[k, i] != x[k, i]:
+                same = False
+        if not same:
+            for i in range(obs.shape[1]):
+                x[k, i] = obs[k, i]
+            forward_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], q[k])
+        actions[k] = plan[k] if plan[k] >= 0 else np.argmax(q[k])
+
+
+@njit(cache=True)
+def _update_kernel(w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, actions, reward,
+                   next_obs, terminated, hyper, bootstrap_terminal, kind, gains, loss_weight,
+                   Ad, Bd, C, D, xc, w_x, w_c, research, unsolved, x_e, ep, t, rows, q_limit,
+                   ok):  # fmt: skip  # noqa: ANN001, ANN202
+    """:meth:`ControlledPopulation.update` (module docstring), member by member, in the
+    order of operations of :meth:`cdqn.agents.ControlledAgent.update`."""
+    alpha, discount = hyper[0], hyper[1]
+    for k in range(actions.shape[0]):
+        for i in range(x2.shape[0]):
+            x2[i] = next_obs[k, i]
+        forward_row(w1t[k], b1[k], w2[k], b2[k], x2, p2, q2s)
+        a, b = actions[k], np.argmax(q2s)
+        q1, q2 = float(q[k, a]), float(q2s[b])
+        scratch[0], scratch[1] = td_row(w2[k], x[k], p[k], x2, p2, a, b, g)
+        theta1, theta2 = float(scratch[0]), float(scratch[1])
+        q_next = q2 if (bootstrap_terminal or not terminated[k]) else 0.0
+
+        error = reward[k] + discount * q_next - q1
+        x_e[k] += alpha * error
+        xe = x_e[k]
+        if kind == NO_CONTROL:
+            u = 0.0
+        elif kind == STATIC_GAIN:
+            u = static_gain_u(gains[k, 0], gains[k, 1], gains[k, 2], xe, q1, q_next)
+        elif kind == STATE_SPACE:
+            u = state_space_step(Ad, Bd, C, D, xc[k], xe, q1, q_next)
+        else:
+            u, loss_weight[k], solved = scheduled_lqr_step(
+                theta1, theta2, discount, w_x, w_c, research, gains[k], xe, q1, q_next
+            )
+            if not solved:
+                unsolved[k] += 1
+        delta = error + u
+        loss = 0.5 * loss_weight[k] * delta * delta
+        scratch[2] = alpha * delta
+        # the step; the member's pass becomes the one at s' with the new parameters
+        sgd_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], a, scratch[2], g, x2, p2, p[k], q[k])
+        for i in range(x2.shape[0]):
+            x[k, i] = x2[i]
+
+        row = rows[k]
+        row[0], row[1], row[2], row[3], row[4] = ep[k], t[k], reward[k], q1, q2
+        row[5], row[6], row[7], row[8], row[9] = u, xe, theta1, theta2, loss
+        ok[k] = math.isfinite(u + xe + loss) and max(abs(q1), abs(q2)) <= q_limit
