@@ -8,9 +8,12 @@ with that seed starts.  Steps go through one of two implementations:
   dynamics on ``K`` states, written operation for operation as gymnasium writes them for
   one (same order of floating-point operations, ``cos``/``sin`` and ``x**2`` through the
   same libm routines), so each member's trajectory is bit-identical to the environment's
-  own (``tests/test_population.py`` checks this).  CartPole and MountainCar are compiled
-  loops (numba, strict IEEE arithmetic); Acrobot's RK4 stays in NumPy, because its
-  ``x**2`` must be libm's ``pow`` (not ``x*x``), which a compiler may rewrite.
+  own (``tests/test_population.py`` checks this).  Each is a compiled loop over the
+  members (numba, strict IEEE arithmetic).  Acrobot's ``x**2`` must be libm's ``pow``
+  (not ``x*x``, which differs in the last bit for about 1 in 1000 values): the exponent is
+  passed in at run time so that the compiler keeps the call.  Acrobot's twin is used where
+  the compiled ``cos``/``sin``/``pow`` agree with NumPy's scalar ones, which
+  :func:`compiled_math_matches_numpy` checks once per process.
 * :class:`GymLoop` — any other environment: a loop over the members' environments.
 
 Both count steps and truncate at the environment's ``TimeLimit`` as gymnasium does.
@@ -18,6 +21,7 @@ Both count steps and truncate at the environment's ``TimeLimit`` as gymnasium do
 
 from __future__ import annotations
 
+import functools
 import math
 from math import pi
 from typing import NamedTuple, Protocol
@@ -123,13 +127,18 @@ class ClassicControlTwin:
         self.kind = type(base)
         self.state = np.zeros((len(envs), {CartPoleEnv: 4, AcrobotEnv: 4}.get(self.kind, 2)))
         self.elapsed = np.zeros(len(envs), dtype=np.int64)
-        self._two = np.full(len(envs), 2.0)
         e = base
         if self.kind is CartPoleEnv:
             self.params = np.array([
                 e.force_mag, e.gravity, e.masspole, e.total_mass, e.length, e.polemass_length,
                 e.tau, e.kinematics_integrator == "euler", e.x_threshold,
                 e.theta_threshold_radians,
+            ], dtype=np.float64)  # fmt: skip
+        elif self.kind is AcrobotEnv:
+            self.params = np.array([
+                e.LINK_MASS_1, e.LINK_MASS_2, e.LINK_LENGTH_1, e.LINK_COM_POS_1,
+                e.LINK_COM_POS_2, e.LINK_MOI, e.dt, e.MAX_VEL_1, e.MAX_VEL_2,
+                e.book_or_nips == "nips", *e.AVAIL_TORQUE,
             ], dtype=np.float64)  # fmt: skip
         elif self.kind is MountainCarEnv:
             self.params = np.array([
@@ -153,7 +162,12 @@ class ClassicControlTwin:
                 base, "_sutton_barto_reward", False
             )
         if isinstance(base, AcrobotEnv):
-            return base.torque_noise_max == 0.0 and base.book_or_nips in ("book", "nips")
+            return (
+                base.torque_noise_max == 0.0
+                and base.book_or_nips in ("book", "nips")
+                and len(base.AVAIL_TORQUE) == 3
+                and compiled_math_matches_numpy()
+            )
         return True
 
     def reset(self, i: int, seed: int | None) -> np.ndarray:
@@ -166,83 +180,18 @@ class ClassicControlTwin:
         self.envs = [self.envs[i] for i in keep]
         self.bases = [self.bases[i] for i in keep]
         self.state, self.elapsed = self.state[keep], self.elapsed[keep]
-        self._two = self._two[keep]
 
     def step(self, actions: np.ndarray) -> VectorStep:
         k = len(actions)
-        if self.kind is AcrobotEnv:
-            obs, reward, terminated = self._acrobot(np.asarray(actions))
-            self.elapsed += 1
-            truncated = self.elapsed >= self.cap if self.cap is not None else np.zeros(k, bool)
-        else:
-            obs = np.empty(self.state.shape, np.float32)
-            reward, terminated, truncated = np.empty(k), np.empty(k, bool), np.empty(k, bool)
-            kernel = _cartpole_kernel if self.kind is CartPoleEnv else _mountaincar_kernel
-            kernel(self.state, np.ascontiguousarray(actions, np.int64), self.params, obs, reward,
-                   terminated)  # fmt: skip
-            _count_steps(self.elapsed, -1 if self.cap is None else self.cap, truncated)
+        obs = np.empty((k, 6 if self.kind is AcrobotEnv else self.state.shape[1]), np.float32)
+        reward, terminated, truncated = np.empty(k), np.empty(k, bool), np.empty(k, bool)
+        kernel = _KERNELS[self.kind]
+        kernel(self.state, np.ascontiguousarray(actions, np.int64), self.params, obs, reward,
+               terminated)  # fmt: skip
+        _count_steps(self.elapsed, -1 if self.cap is None else self.cap, truncated)
         if self.indices is not None:
             obs = obs[:, self.indices]
         return VectorStep(obs, reward, terminated, truncated)
-
-    def _dsdt(self, s: np.ndarray) -> np.ndarray:
-        """gymnasium ``AcrobotEnv._dsdt`` on rows ``[θ1, θ2, θ̇1, θ̇2, torque]``."""
-        e = self.base
-        m1, m2 = e.LINK_MASS_1, e.LINK_MASS_2
-        l1 = e.LINK_LENGTH_1
-        lc1, lc2 = e.LINK_COM_POS_1, e.LINK_COM_POS_2
-        I1 = I2 = e.LINK_MOI
-        g = 9.8
-        a = s[:, 4]
-        theta1, theta2, dtheta1, dtheta2 = s[:, 0], s[:, 1], s[:, 2], s[:, 3]
-        two = self._two  # x**2 of a NumPy scalar is libm pow(x, 2), not x*x
-        d1 = m1 * lc1**2 + m2 * (l1**2 + lc2**2 + 2 * l1 * lc2 * np.cos(theta2)) + I1 + I2
-        d2 = m2 * (lc2**2 + l1 * lc2 * np.cos(theta2)) + I2
-        phi2 = m2 * lc2 * g * np.cos(theta1 + theta2 - pi / 2.0)
-        phi1 = (
-            -m2 * l1 * lc2 * np.power(dtheta2, two) * np.sin(theta2)
-            - 2 * m2 * l1 * lc2 * dtheta2 * dtheta1 * np.sin(theta2)
-            + (m1 * lc1 + m2 * l1) * g * np.cos(theta1 - pi / 2)
-            + phi2
-        )
-        if e.book_or_nips == "nips":
-            ddtheta2 = (a + d2 / d1 * phi1 - phi2) / (m2 * lc2**2 + I2 - np.power(d2, two) / d1)
-        else:
-            ddtheta2 = (
-                a + d2 / d1 * phi1 - m2 * l1 * lc2 * np.power(dtheta1, two) * np.sin(theta2) - phi2
-            ) / (m2 * lc2**2 + I2 - np.power(d2, two) / d1)
-        ddtheta1 = -(d2 * ddtheta2 + phi1) / d1
-        return np.stack([dtheta1, dtheta2, ddtheta1, ddtheta2, np.zeros_like(a)], axis=1)
-
-    def _acrobot(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """gymnasium ``AcrobotEnv.step`` (one RK4 step of ``dt``, wrap, bound), vectorised."""
-        e = self.base
-        torque = np.asarray(e.AVAIL_TORQUE, dtype=np.float64)[action]
-        y0 = np.concatenate([self.state, torque[:, None]], axis=1)
-        dt = e.dt - 0
-        dt2 = dt / 2.0
-        k1 = self._dsdt(y0)
-        k2 = self._dsdt(y0 + dt2 * k1)
-        k3 = self._dsdt(y0 + dt2 * k2)
-        k4 = self._dsdt(y0 + dt * k3)
-        ns = y0 + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
-        for j in (0, 1):  # wrap to [-pi, pi] as gymnasium's wrap()
-            col = ns[:, j]
-            while (col > pi).any():
-                col = np.where(col > pi, col - 2 * pi, col)
-            while (col < -pi).any():
-                col = np.where(col < -pi, col + 2 * pi, col)
-            ns[:, j] = col
-        ns[:, 2] = np.minimum(np.maximum(ns[:, 2], -e.MAX_VEL_1), e.MAX_VEL_1)
-        ns[:, 3] = np.minimum(np.maximum(ns[:, 3], -e.MAX_VEL_2), e.MAX_VEL_2)
-        self.state = ns[:, :4]
-        s = self.state
-        terminated = -np.cos(s[:, 0]) - np.cos(s[:, 1] + s[:, 0]) > 1.0
-        obs = np.stack(
-            [np.cos(s[:, 0]), np.sin(s[:, 0]), np.cos(s[:, 1]), np.sin(s[:, 1]), s[:, 2], s[:, 3]],
-            axis=1,
-        ).astype(np.float32)
-        return obs, np.where(terminated, 0.0, -1.0), terminated
 
 
 @njit(cache=True)
@@ -310,6 +259,112 @@ def _mountaincar_kernel(state, action, params, obs, reward, terminated):  # noqa
         state[k, 0], state[k, 1] = position, velocity
         obs[k, 0], obs[k, 1] = position, velocity
         reward[k] = -1.0
+
+
+@njit(cache=True)
+def _acrobot_dsdt(y, c, two, out):  # noqa: ANN001, ANN202
+    """gymnasium ``AcrobotEnv._dsdt`` at ``y = [θ1, θ2, θ̇1, θ̇2, torque]`` into ``out``,
+    operation for operation (``x ** two`` is libm ``pow(x, 2)``, as NumPy's and Python's
+    scalar ``x**2``; ``two`` is an argument so that the compiler cannot turn it into x*x)."""
+    m1, m2, l1, lc1, lc2 = c[0], c[1], c[2], c[3], c[4]
+    I1 = I2 = c[5]
+    g = 9.8
+    a = y[4]
+    theta1, theta2, dtheta1, dtheta2 = y[0], y[1], y[2], y[3]
+    d1 = m1 * lc1**two + m2 * (l1**two + lc2**two + 2 * l1 * lc2 * math.cos(theta2)) + I1 + I2
+    d2 = m2 * (lc2**two + l1 * lc2 * math.cos(theta2)) + I2
+    phi2 = m2 * lc2 * g * math.cos(theta1 + theta2 - pi / 2.0)
+    phi1 = (
+        -m2 * l1 * lc2 * dtheta2**two * math.sin(theta2)
+        - 2 * m2 * l1 * lc2 * dtheta2 * dtheta1 * math.sin(theta2)
+        + (m1 * lc1 + m2 * l1) * g * math.cos(theta1 - pi / 2)
+        + phi2
+    )
+    if c[9] != 0.0:  # "nips"
+        ddtheta2 = (a + d2 / d1 * phi1 - phi2) / (m2 * lc2**two + I2 - d2**two / d1)
+    else:  # "book"
+        ddtheta2 = (a + d2 / d1 * phi1 - m2 * l1 * lc2 * dtheta1**two * math.sin(theta2) - phi2) / (
+            m2 * lc2**two + I2 - d2**two / d1
+        )
+    ddtheta1 = -(d2 * ddtheta2 + phi1) / d1
+    out[0], out[1], out[2], out[3], out[4] = dtheta1, dtheta2, ddtheta1, ddtheta2, 0.0
+
+
+@njit(cache=True)
+def _acrobot_rk4(state, action, params, two, obs, reward, terminated):  # noqa: ANN001, ANN202
+    c = params
+    dt = c[6] - 0  # gymnasium integrates over t = [0, dt]
+    dt2 = dt / 2.0
+    y0, y = np.empty(5), np.empty(5)
+    k1, k2, k3, k4 = np.empty(5), np.empty(5), np.empty(5), np.empty(5)
+    for k in range(state.shape[0]):
+        for i in range(4):
+            y0[i] = state[k, i]
+        y0[4] = c[10 + action[k]]
+        _acrobot_dsdt(y0, c, two, k1)
+        for i in range(5):
+            y[i] = y0[i] + dt2 * k1[i]
+        _acrobot_dsdt(y, c, two, k2)
+        for i in range(5):
+            y[i] = y0[i] + dt2 * k2[i]
+        _acrobot_dsdt(y, c, two, k3)
+        for i in range(5):
+            y[i] = y0[i] + dt * k3[i]
+        _acrobot_dsdt(y, c, two, k4)
+        for i in range(4):
+            y[i] = y0[i] + dt / 6.0 * (k1[i] + 2 * k2[i] + 2 * k3[i] + k4[i])
+        for i in range(2):  # gymnasium's wrap(x, -pi, pi)
+            while y[i] > pi:
+                y[i] = y[i] - (pi - -pi)
+            while y[i] < -pi:
+                y[i] = y[i] + (pi - -pi)
+        y[2] = min(max(y[2], -c[7]), c[7])  # bound
+        y[3] = min(max(y[3], -c[8]), c[8])
+        for i in range(4):
+            state[k, i] = y[i]
+        s0, s1 = y[0], y[1]
+        terminated[k] = -math.cos(s0) - math.cos(s1 + s0) > 1.0
+        reward[k] = 0.0 if terminated[k] else -1.0
+        obs[k, 0], obs[k, 1] = math.cos(s0), math.sin(s0)
+        obs[k, 2], obs[k, 3] = math.cos(s1), math.sin(s1)
+        obs[k, 4], obs[k, 5] = y[2], y[3]
+
+
+def _acrobot_kernel(state, action, params, obs, reward, terminated) -> None:  # noqa: ANN001
+    """gymnasium ``AcrobotEnv.step`` (one RK4 step of ``dt``, wrap, bound) for every member,
+    in place (:func:`_acrobot_rk4`)."""
+    _acrobot_rk4(state, action, params, 2.0, obs, reward, terminated)
+
+
+@functools.cache
+def compiled_math_matches_numpy(samples: int = 4000) -> bool:
+    """Whether this machine's compiled ``cos``, ``sin`` and ``pow(x, 2)`` (libm, as numba
+    calls them) return what NumPy's scalar ``cos``, ``sin`` and ``x**2`` return, which
+    gymnasium's Acrobot uses: checked on ``samples`` angles and velocities.  (NumPy may
+    dispatch to its own SIMD routines on some CPUs; there Acrobot populations step the
+    members' own environments.)"""
+    gen = np.random.default_rng(0)
+    x = np.concatenate([gen.uniform(-8.0, 8.0, samples), gen.normal(0.0, 1e-2, samples // 4)])
+    out = np.empty((len(x), 3))
+    _libm(x, 2.0, out)
+    for i, v in enumerate(x.tolist()):
+        s = np.float64(v)
+        if (np.cos(s), np.sin(s), s**2) != tuple(out[i]):
+            return False
+    return True
+
+
+@njit(cache=True)
+def _libm(x, two, out):  # noqa: ANN001, ANN202
+    for i in range(x.shape[0]):
+        out[i, 0], out[i, 1], out[i, 2] = math.cos(x[i]), math.sin(x[i]), x[i] ** two
+
+
+_KERNELS = {
+    CartPoleEnv: _cartpole_kernel,
+    AcrobotEnv: _acrobot_kernel,
+    MountainCarEnv: _mountaincar_kernel,
+}
 
 
 def make_vector_env(envs: list[gym.Env]) -> VectorEnv:
