@@ -23,7 +23,12 @@ from cdqn.population_step import ExplorationPlan
 from cdqn.signals import SignalBuffer
 from cdqn.train import build, run
 from cdqn.trainer import DivergenceError, TrainState, train
-from cdqn.vector_env import ClassicControlTwin, GymLoop, make_vector_env
+from cdqn.vector_env import (
+    ClassicControlTwin,
+    GymLoop,
+    compiled_math_matches_numpy,
+    make_vector_env,
+)
 from tests.conftest import compose_config
 
 ENVS = {
@@ -42,7 +47,9 @@ def test_vectorised_classic_control_steps_equal_gymnasium(name: str) -> None:
     k = 3
     reference = [make_env(cfg) for _ in range(k)]
     venv = make_vector_env([make_env(cfg) for _ in range(k)])
-    assert isinstance(venv, ClassicControlTwin)
+    # Acrobot's twin needs this machine's compiled cos/sin/pow to be NumPy's
+    twin = cfg.name != "acrobot" or compiled_math_matches_numpy()
+    assert isinstance(venv, ClassicControlTwin if twin else GymLoop)
     obs = np.stack([env.reset(seed=10 + i)[0] for i, env in enumerate(reference)])
     assert np.array_equal(obs, np.stack([venv.reset(i, 10 + i) for i in range(k)]))
     gen = np.random.default_rng(0)
