@@ -20,9 +20,10 @@ that other load on the machine affects all of them alike, in CPU seconds of this
 metrics to the store cost the same per episode in every mode; they are timed apart (wall
 clock), printed below the table and included in the estimate.
 
-The population section trains ``K`` seeds as one batch (:mod:`cdqn.population`) and
-reports member-steps per second against the single run's steps per second of the same
-controller (the throughput of ``K`` sequential runs); its ``speedup`` is the ratio.
+The population section trains ``K`` seeds as one batch (:mod:`cdqn.population`) for
+``--steps`` population steps (``K × steps`` member-steps) and reports member-steps per
+second against the single run's steps per second of the same controller (the throughput of
+``K`` sequential runs); its ``speedup`` is the ratio.
 
 The estimate section measures the throughput of every environment and controller of the
 paper's sweep (populations of 10 for the controlled agents, Double DQN one seed after
@@ -469,9 +470,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             for c in controllers:
                 single[c].append(keep(measure_single(cfgs[c], uri, args.steps, args.warmup)))
                 if k > 1 and c in pop:
-                    p = measure_population(
-                        cfgs[c], uri, k, args.steps // k + 1, args.warmup // k + 1
-                    )
+                    p = measure_population(cfgs[c], uri, k, args.steps, args.warmup // k + 1)
                     pop[c].append(keep(p.member_steps))
         floor_sps = _median(floor)
         result: dict[str, Any] = {

@@ -43,7 +43,7 @@ from cdqn.control.factory import ControllerSetup, make_controller
 from cdqn.envs import env_sizes, make_env
 from cdqn.interrupt import GracefulStop
 from cdqn.network import NetworkSpec, QNetwork, save_network
-from cdqn.population_step import ControlledPopulation
+from cdqn.population_step import CHECK, DONE, ControlledPopulation
 from cdqn.signals import COLUMNS, SignalBuffer
 from cdqn.sweep import config_hash, ensure_store, final_score, find_finished
 from cdqn.tracking import Recorder, check_tracking, flatten, git_commit
@@ -146,7 +146,6 @@ def train_population(
     ret = np.zeros(len(members))
     ep = np.array([m.episode for m in members], dtype=float)
     staging = _Staging(len(members))
-    loss_seen = np.zeros(len(members), dtype=bool)
     bar = tqdm(total=episodes * len(members), disable=not progress, unit="ep", leave=True)
     steps = 0
     try:
@@ -154,58 +153,55 @@ def train_population(
             actions = agent.act(obs)
             out = venv.step(actions)
             rows = staging.next_block(members)
-            ok = agent.update(actions, out.reward, out.obs, out.terminated, ep, t, rows, q_limit)
-            # ok: the trainer's divergence test as one cheap test that every healthy step
-            # passes; the rows that fail it are tested exactly (cdqn.trainer) below.
-            ret += out.reward
-            t += 1
+            flagged = agent.update(actions, out, ep, t, ret, rows, q_limit)
             obs = out.obs
             leaving: list[int] = []
-            if not ok.all():
-                for j in np.flatnonzero(~ok):
+            if flagged:
+                flags = agent.flags
+                for j in np.flatnonzero(flags == CHECK):  # the trainer's exact test
                     row = rows[j].tolist()
                     r = StepRecord(row[9], *row[3:9])
                     if (
                         abs(r.q1) <= q_limit
                         and abs(r.q2) <= q_limit
                         and math.isfinite(r.u + r.x_e)
-                        and (math.isfinite(r.loss) or (not loss_seen[j] and math.isnan(r.loss)))
+                        and (
+                            math.isfinite(r.loss) or (not agent.loss_seen[j] and math.isnan(r.loss))
+                        )
                     ):
-                        ok[j] = True
-                        loss_seen[j] = loss_seen[j] or not math.isnan(r.loss)
+                        agent.loss_seen[j] |= not math.isnan(r.loss)
+                        flags[j] = DONE if out.terminated[j] or out.truncated[j] else 0
                         continue
                     try:
                         _diagnose(r, q_limit, members[j].episode, int(t[j] - 1))
                     except DivergenceError as err:
                         members[j].status, members[j].reason = "FAILED", f"diverged: {err}"
                     leaving.append(j)
-            loss_seen |= ok
-            done = out.terminated | out.truncated
-            for j in np.flatnonzero(done & ok):
-                m = members[j]
-                staging.flush(j, m)
-                x_c = agent.controller.state(j)
-                if x_c is not None and not np.all(np.isfinite(x_c)):
-                    err = DivergenceError(
-                        f"non-finite controller state x_c = {x_c}", m.episode, int(t[j] - 1)
-                    )
-                    m.status, m.reason = "FAILED", f"diverged: {err}"
-                    leaving.append(j)
-                    continue
-                m.returns.append(float(ret[j]))
-                start = m.signals.n - int(t[j])
-                stats = episode_stats(m.episode, m.signals.rows(start), m.returns, discount)
-                m.episode += 1
-                if on_episode is not None:
-                    on_episode(m, stats)
-                bar.update(1)
-                if m.episode >= episodes:
-                    m.status = "FINISHED"
-                    leaving.append(j)
-                    continue
-                obs[j] = venv.reset(j, None)
-                agent.start_episode(j)
-                t[j], ret[j], ep[j] = 0, 0.0, m.episode
+                for j in np.flatnonzero(flags == DONE):
+                    m = members[j]
+                    staging.flush(j, m)
+                    x_c = agent.controller.state(j)
+                    if x_c is not None and not np.all(np.isfinite(x_c)):
+                        err = DivergenceError(
+                            f"non-finite controller state x_c = {x_c}", m.episode, int(t[j] - 1)
+                        )
+                        m.status, m.reason = "FAILED", f"diverged: {err}"
+                        leaving.append(j)
+                        continue
+                    m.returns.append(float(ret[j]))
+                    start = m.signals.n - int(t[j])
+                    stats = episode_stats(m.episode, m.signals.rows(start), m.returns, discount)
+                    m.episode += 1
+                    if on_episode is not None:
+                        on_episode(m, stats)
+                    bar.update(1)
+                    if m.episode >= episodes:
+                        m.status = "FINISHED"
+                        leaving.append(j)
+                        continue
+                    obs[j] = venv.reset(j, None)
+                    agent.start_episode(j)
+                    t[j], ret[j], ep[j] = 0, 0.0, m.episode
             steps += 1
             stop = should_stop is not None and should_stop()
             if stop or (max_steps is not None and steps >= max_steps):
@@ -226,7 +222,6 @@ def train_population(
                 venv.select(keep)
                 staging.select(keep, members)
                 obs, t, ret, ep = obs[keep], t[keep], ret[keep], ep[keep]
-                loss_seen = loss_seen[keep]
     finally:
         bar.close()
 

@@ -38,8 +38,12 @@ from cdqn.control.runtime import (
     StaticGain,
 )
 from cdqn.network import QNetwork, StackedTwoLayer, forward_row, sgd_row, td_row
+from cdqn.vector_env import VectorStep
 
 NO_CONTROL, STATIC_GAIN, STATE_SPACE, SCHEDULED_LQR = 0, 1, 2, 3
+DONE, CHECK = 1, 2
+"""Flags of :meth:`ControlledPopulation.update`: the episode ended; the step failed the
+cheap divergence test."""
 _KINDS = {NoControl: NO_CONTROL, StaticGain: STATIC_GAIN, StateSpace: STATE_SPACE,
           ScheduledLQR: SCHEDULED_LQR}  # fmt: skip
 
@@ -178,7 +182,8 @@ class ControlledPopulation:
             np.empty(3, dtype),
         )
         self.actions = np.empty(k, dtype=np.int64)
-        self.ok = np.empty(k, dtype=np.bool_)
+        self.flags = np.zeros(k, dtype=np.int8)
+        self.loss_seen = np.zeros(k, dtype=np.bool_)
 
     def __len__(self) -> int:
         return len(self.x_e)
@@ -198,26 +203,31 @@ class ControlledPopulation:
     def update(
         self,
         actions: np.ndarray,
-        reward: np.ndarray,
-        next_obs: np.ndarray,
-        terminated: np.ndarray,
+        step: VectorStep,
         ep: np.ndarray,
         t: np.ndarray,
+        ret: np.ndarray,
         rows: np.ndarray,
         q_limit: float,
-    ) -> np.ndarray:
-        """One controlled step of every member; writes each member's signal row (columns of
-        :data:`cdqn.signals.COLUMNS`, episode ``ep`` and step ``t``) into ``rows`` and
-        returns the divergence pre-check per member: ``u + x_e + loss`` finite and
-        ``max(|Q1|, |Q2|) ≤ q_limit`` (the array is reused by the next call)."""
+    ) -> int:
+        """One controlled step of every member on the environments' ``step``.
+
+        Writes each member's signal row (columns of :data:`cdqn.signals.COLUMNS`, episode
+        ``ep``, step ``t``) into ``rows``, then adds the reward to ``ret`` and counts the step
+        in ``t``.  :attr:`flags` tells the loop what needs its attention: :data:`CHECK` for
+        a step that fails the cheap divergence test (``u + x_e + loss`` finite and
+        ``max(|Q1|, |Q2|) ≤ q_limit``; a healthy step always passes it), :data:`DONE` for
+        the end of an episode, 0 otherwise; :attr:`loss_seen` records that a member has had a
+        step that passed.  Returns the number of flagged members.
+        """
         n, c = self.net, self.controller
-        _update_kernel(
-            n.w1t, n.b1, n.w2, n.b2, self.x, self.p, self.q, *self.scratch, actions, reward,
-            next_obs, terminated, self.hyper, self.bootstrap_terminal, c.kind, c.gains,
-            c.loss_weight, c.Ad, c.Bd, c.C, c.D, c.x, c.w_x, c.w_c, c.research, c.unsolved,
-            self.x_e, ep, t, rows, q_limit, self.ok,
+        return _update_kernel(
+            n.w1t, n.b1, n.w2, n.b2, self.x, self.p, self.q, *self.scratch, actions,
+            step.reward, step.obs, step.terminated, step.truncated, self.hyper,
+            self.bootstrap_terminal, c.kind, c.gains, c.loss_weight, c.Ad, c.Bd, c.C, c.D, c.x,
+            c.w_x, c.w_c, c.research, c.unsolved, self.x_e, ep, t, ret, rows, q_limit,
+            self.flags, self.loss_seen,
         )  # fmt: skip
-        return self.ok
 
     def select(self, keep: np.ndarray) -> None:
         """Keep only the members ``keep`` (indices, in that order)."""
@@ -226,7 +236,8 @@ class ControlledPopulation:
         self.explore.select(keep)
         self.x_e = self.x_e[keep]
         self.x, self.p, self.q = self.x[keep], self.p[keep], self.q[keep]
-        self.actions, self.ok = self.actions[keep], self.ok[keep]
+        self.actions, self.flags = self.actions[keep], self.flags[keep]
+        self.loss_seen = self.loss_seen[keep]
 
     def network(self, i: int) -> QNetwork:
         """Member ``i``'s network as a :class:`QNetwork`."""
@@ -254,12 +265,13 @@ def _act_kernel(w1t, b1, w2, b2, obs, x, p, q, plan, actions):  # noqa: ANN001, 
 
 @njit(cache=True)
 def _update_kernel(w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, actions, reward,
-                   next_obs, terminated, hyper, bootstrap_terminal, kind, gains, loss_weight,
-                   Ad, Bd, C, D, xc, w_x, w_c, research, unsolved, x_e, ep, t, rows, q_limit,
-                   ok):  # fmt: skip  # noqa: ANN001, ANN202
+                   next_obs, terminated, truncated, hyper, bootstrap_terminal, kind, gains,
+                   loss_weight, Ad, Bd, C, D, xc, w_x, w_c, research, unsolved, x_e, ep, t,
+                   ret, rows, q_limit, flags, loss_seen):  # fmt: skip  # noqa: ANN001, ANN202
     """:meth:`ControlledPopulation.update` (module docstring), member by member, in the
     order of operations of :meth:`cdqn.agents.ControlledAgent.update`."""
     alpha, discount = hyper[0], hyper[1]
+    flagged = 0
     for k in range(actions.shape[0]):
         for i in range(x2.shape[0]):
             x2[i] = next_obs[k, i]
@@ -296,4 +308,15 @@ def _update_kernel(w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, actions, r
         row = rows[k]
         row[0], row[1], row[2], row[3], row[4] = ep[k], t[k], reward[k], q1, q2
         row[5], row[6], row[7], row[8], row[9] = u, xe, theta1, theta2, loss
-        ok[k] = math.isfinite(u + xe + loss) and max(abs(q1), abs(q2)) <= q_limit
+        ret[k] += reward[k]
+        t[k] += 1
+        if not (math.isfinite(u + xe + loss) and max(abs(q1), abs(q2)) <= q_limit):
+            flags[k] = CHECK
+        elif terminated[k] or truncated[k]:
+            flags[k] = DONE
+            loss_seen[k] = True
+        else:
+            flags[k] = 0
+            loss_seen[k] = True
+        flagged += flags[k] != 0
+    return flagged
