@@ -238,10 +238,36 @@ def measure_population(
     cfg: DictConfig, uri: str, k: int, steps: int, warmup: int
 ) -> PopulationThroughput:
     """``k`` seeds as one batch for ``warmup + steps`` population steps, with each member's
-    MLflow run receiving its metrics, then its signals and model."""
+    MLflow run receiving its metrics, then its signals and model.
+
+    Only steps with all ``k`` members in the batch are timed: when a member diverges the
+    window closes there, and the measurement goes on with ``k`` other seeds until
+    ``steps`` population steps are timed (like :func:`measure_single`, which replaces a
+    diverged run)."""
+    total, overheads, seed = Throughput(0, 0.0), [], _conf(cfg).seed
+    for _ in range(8):
+        window, overhead = _population_window(cfg, uri, k, steps - total.steps // k, warmup, seed)
+        total = Throughput(
+            total.steps + window.steps,
+            total.seconds + window.seconds,
+            total.episodes + window.episodes,
+            total.metric_write_s + window.metric_write_s,
+        )
+        overheads.append(overhead)
+        if total.steps >= k * steps:
+            break
+        seed += 1_000
+    return PopulationThroughput(total, float(np.mean(overheads)))
+
+
+def _population_window(
+    cfg: DictConfig, uri: str, k: int, steps: int, warmup: int, seed: int
+) -> tuple[Throughput, float]:
+    """Seeds ``seed … seed+k−1`` as one batch: (the timed window, seconds to open and
+    close one member's run)."""
     conf = _conf(cfg)
     setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
-    seeds = list(range(conf.seed, conf.seed + k))
+    seeds = list(range(seed, seed + k))
     agent, venv = build_population(conf, setup, seeds)
     members = [Member(s, member_config(cfg, s)) for s in seeds]
     t_open = time.perf_counter()
@@ -255,19 +281,22 @@ def measure_population(
         assert m.recorder is not None
         m.recorder.flush_seconds = float("inf")  # written at the end, timed apart
 
-    def tick() -> bool:  # called once per population step
+    def tick() -> bool:  # called once per population step, after its episode ends
         timer["calls"] += 1
         if timer["calls"] > warmup:
-            timer["member_steps"] += len(agent)
+            timer["member_steps"] += k
         if timer["calls"] == warmup:
             for m in members:  # the warm-up's metrics
-                if m.recorder is not None and m.status == "RUNNING":
+                if m.recorder is not None:
                     m.recorder.flush()
             timer["episodes0"] = sum(m.episode for m in members)
             timer["t0"] = clock()
-        if timer["calls"] == warmup + steps:
-            timer["t1"] = clock()
-            timer["episodes1"] = sum(m.episode for m in members)
+        all_in = all(m.status == "RUNNING" for m in members)
+        if timer["calls"] == warmup + steps or not all_in:
+            if "t0" in timer:
+                timer["t1"] = clock()
+                timer["episodes1"] = sum(m.episode for m in members)
+            return True
         return False
 
     def on_episode(m: Member, stats: Any) -> None:
@@ -293,17 +322,18 @@ def measure_population(
         on_episode=on_episode,
         on_member_end=on_member_end,
         should_stop=tick,
-        max_steps=warmup + steps,
     )
     for env in venv.envs:
         env.close()
     diverged = sum(m.status == "FAILED" for m in members)
     if diverged:
-        log.warning("%d of %d members diverged during the measurement", diverged, k)
-    seconds = timer.get("t1", clock()) - timer.get("t0", clock())
-    episodes = int(timer.get("episodes1", 0) - timer.get("episodes0", 0))
-    measured = Throughput(int(timer["member_steps"]), seconds, episodes, sum(flushes))
-    return PopulationThroughput(measured, (t_open + sum(ended)) / k)
+        log.info("%d of %d members diverged; timed until the first did", diverged, k)
+    if "t1" not in timer:  # a member left during the warm-up: nothing timed
+        return Throughput(0, 0.0), (t_open + sum(ended)) / k
+    seconds = timer["t1"] - timer["t0"]
+    episodes = int(timer["episodes1"] - timer["episodes0"])
+    member_steps = int(timer["member_steps"])
+    return Throughput(member_steps, seconds, episodes, sum(flushes)), (t_open + sum(ended)) / k
 
 
 def _median(values: list[float]) -> float:
