@@ -169,6 +169,20 @@ def test_population_members_step_exactly_as_single_runs(
             assert np.abs(rows[:, 5]).sum() > 0  # u acted
 
 
+def test_members_stepping_their_own_environments_equal_single_runs(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The population loop on :class:`GymLoop` (environments the twin does not know)."""
+    monkeypatch.setattr(ClassicControlTwin, "supports", classmethod(lambda cls, envs: False))
+    overrides = [*BASE, "env=mountaincar", "controller=hinf_f", "train.episodes=2"]
+    members = _population(overrides, [3, 4])
+    for m in members:
+        status, _, returns, rows = _single([*overrides, f"seed={m.seed}"])
+        assert m.status == status == "FINISHED"
+        assert m.returns == returns
+        assert np.array_equal(m.signals.state(), rows)
+
+
 @pytest.mark.parametrize("n_actions", [2, 3])
 def test_exploration_drawn_ahead_equals_epsilon_greedy(n_actions: int) -> None:
     """Decisions drawn ahead in blocks (populations) are the decisions, and leave the
