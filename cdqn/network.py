@@ -323,60 +323,110 @@ class StackedTwoLayer:
         return StackedForward(f2.x, p, q)
 
 
+_DQN_BLOCK = 256
+"""Hidden units per block of :func:`_double_dqn_kernel`: a block of both networks'
+parameters (about 30 KB) stays in L1 while the whole minibatch passes through it."""
+
+
 @njit(**_JIT)
-def _hidden(w1t, b1, x, p):
-    """``p = b_1 + Σ_k x_k W_1ᵀ[k]`` (rows of length ``width``, vectorised)."""
-    p[:] = b1
+def _block_q(w1t, b1, w2, x, j0, j1, p, q):  # noqa: ANN001, ANN202
+    """Add hidden units ``j0 … j1−1``'s share of ``Q(x, ·)`` to ``q``; ``p`` gets their
+    pre-activations.  (Blocks are sliced, so that loops index from 0 and vectorise.)"""
+    n = j1 - j0
+    bb = b1[j0:j1]
+    for jj in range(n):
+        p[jj] = bb[jj]
     for k in range(w1t.shape[0]):
-        xk = x[k]
-        for j in range(w1t.shape[1]):
-            p[j] += w1t[k, j] * xk
+        xk, wk = x[k], w1t[k, j0:j1]
+        for jj in range(n):
+            p[jj] += wk[jj] * xk
+    for a in range(w2.shape[0]):
+        acc, wa = 0.0, w2[a, j0:j1]
+        for jj in range(n):
+            acc += wa[jj] * max(p[jj], 0.0)
+        q[a] += acc
+
+
+@njit(**_JIT)
+def _block_step(w1t, b1, w2, obs, actions, delta, lr, j0, j1, p, gw1, gb1, gw2):  # noqa: ANN001, ANN202
+    """The gradient ``Σ_i δ_i ∂Q_{a_i}(s_i)/∂θ`` of hidden units ``j0 … j1−1``'s
+    parameters, at the current parameters, then their step ``θ += lr · gradient``."""
+    n = j1 - j0
+    bb, n_obs = b1[j0:j1], w1t.shape[0]
+    gw1[:, :n], gb1[:n], gw2[:, :n] = 0.0, 0.0, 0.0
+    for i in range(actions.shape[0]):
+        ai, d = actions[i], delta[i]
+        wa, ga = w2[ai, j0:j1], gw2[ai]
+        for jj in range(n):
+            p[jj] = bb[jj]
+        for k in range(n_obs):
+            xk, wk = obs[i, 0, k], w1t[k, j0:j1]
+            for jj in range(n):
+                p[jj] += wk[jj] * xk
+        for jj in range(n):
+            h = max(p[jj], 0.0)
+            ga[jj] += d * h
+            p[jj] = d * wa[jj] if h > 0.0 else 0.0  # δ_i ∂Q/∂b_1
+            gb1[jj] += p[jj]
+        for k in range(n_obs):
+            xk, gk = obs[i, 0, k], gw1[k]
+            for jj in range(n):
+                gk[jj] += xk * p[jj]
+    for k in range(n_obs):
+        wk, gk = w1t[k, j0:j1], gw1[k]
+        for jj in range(n):
+            wk[jj] += lr * gk[jj]
+    for jj in range(n):
+        bb[jj] += lr * gb1[jj]
+    for a in range(w2.shape[0]):
+        wa, ga = w2[a, j0:j1], gw2[a]
+        for jj in range(n):
+            wa[jj] += lr * ga[jj]
 
 
 @njit(**_JIT)
 def _double_dqn_kernel(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, obs, actions, rewards,
-                       terminated, discount, lr):  # fmt: skip
-    """:func:`double_dqn_step` on the arrays of one online and one target network."""
-    width = w1t.shape[1]
-    gw1t, gb1 = np.zeros_like(w1t), np.zeros_like(b1)
-    gw2, gb2 = np.zeros_like(w2), np.zeros_like(b2)
-    p = np.empty(width)
+                       terminated, discount, lr):  # fmt: skip  # noqa: ANN001, ANN202
+    """:func:`double_dqn_step` on the arrays of one online and one target network, blocked
+    over hidden units: first ``Q(s_i, ·)``, ``Q(s'_i, ·)`` and the target's ``Q̄(s'_i, ·)``
+    for the whole minibatch, block by block; then the δ_i; then, block by block, the
+    gradient of the block's parameters (at the old parameters) and their step."""
+    n_obs, width = w1t.shape
+    n_act, batch = w2.shape[0], actions.shape[0]
+    q_s, q_next, q_tgt = (
+        np.empty((batch, n_act)),
+        np.empty((batch, n_act)),
+        np.empty((batch, n_act)),
+    )
+    for i in range(batch):
+        for a in range(n_act):
+            q_s[i, a], q_next[i, a], q_tgt[i, a] = b2[a], b2[a], tb2[a]
+    p = np.empty(_DQN_BLOCK)
+    for j0 in range(0, width, _DQN_BLOCK):
+        j1 = min(j0 + _DQN_BLOCK, width)
+        for i in range(batch):
+            _block_q(w1t, b1, w2, obs[i, 0], j0, j1, p, q_s[i])  # online at s_i
+            _block_q(w1t, b1, w2, obs[i, 1], j0, j1, p, q_next[i])  # online at s'_i
+            _block_q(tw1t, tb1, tw2, obs[i, 1], j0, j1, p, q_tgt[i])  # target at s'_i
+    delta = np.empty(batch)
     loss = 0.0
-    for i in range(len(actions)):
-        _hidden(w1t, b1, obs[i, 1], p)  # online network at s'_i: Double DQN's action
-        best, q_best = 0, -np.inf
-        for a in range(w2.shape[0]):
-            acc = b2[a]
-            for j in range(width):
-                acc += w2[a, j] * max(p[j], 0.0)
-            if acc > q_best:
-                best, q_best = a, acc
-        _hidden(tw1t, tb1, obs[i, 1], p)  # target network at s'_i, action best
-        q_next = tb2[best]
-        for j in range(width):
-            q_next += tw2[best, j] * max(p[j], 0.0)
-        y = rewards[i] + discount * (1.0 - terminated[i]) * q_next
-        ai = actions[i]
-        _hidden(w1t, b1, obs[i, 0], p)  # online network at s_i
-        q_sa = b2[ai]
-        for j in range(width):
-            q_sa += w2[ai, j] * max(p[j], 0.0)
-        delta = y - q_sa
-        loss += 0.5 * delta * delta
-        gb2[ai] += delta
-        for j in range(width):  # −∂L_i/∂θ = δ_i ∂Q_{a_i}(s_i)/∂θ
-            hj = max(p[j], 0.0)
-            gw2[ai, j] += delta * hj
-            p[j] = delta * w2[ai, j] if hj > 0.0 else 0.0
-            gb1[j] += p[j]
-        for k in range(w1t.shape[0]):
-            xk = obs[i, 0, k]
-            for j in range(width):
-                gw1t[k, j] += xk * p[j]
-    w1t += lr * gw1t
-    b1 += lr * gb1
-    w2 += lr * gw2
-    b2 += lr * gb2
+    gb2 = np.zeros(n_act)
+    for i in range(batch):
+        best = 0  # Double DQN: the online network's action at s'_i (first maximum)
+        for a in range(1, n_act):
+            if q_next[i, a] > q_next[i, best]:
+                best = a
+        y = rewards[i] + discount * (1.0 - terminated[i]) * q_tgt[i, best]
+        delta[i] = y - q_s[i, actions[i]]
+        loss += 0.5 * delta[i] * delta[i]
+        gb2[actions[i]] += delta[i]
+    gw1, gb1 = np.empty((n_obs, _DQN_BLOCK)), np.empty(_DQN_BLOCK)
+    gw2 = np.empty((n_act, _DQN_BLOCK))
+    for j0 in range(0, width, _DQN_BLOCK):
+        j1 = min(j0 + _DQN_BLOCK, width)
+        _block_step(w1t, b1, w2, obs, actions, delta, lr, j0, j1, p, gw1, gb1, gw2)
+    for a in range(n_act):
+        b2[a] += lr * gb2[a]
     return loss
 
 
