@@ -147,9 +147,15 @@ def forward_row(w1t, b1, w2, b2, x, p, q):  # noqa: ANN001, ANN201
         xi = x[i]
         for j in range(width):
             p[j] += w1t[i, j] * xi
+    output_row(w2, b2, p, q)
+
+
+@njit(**_JIT)
+def output_row(w2, b2, p, q):  # noqa: ANN001, ANN201
+    """One member's output layer: ``q = W_2 relu(p) + b_2``."""
     for a in range(w2.shape[0]):
         acc = 0.0
-        for j in range(width):
+        for j in range(w2.shape[1]):
             acc += w2[a, j] * max(p[j], 0.0)
         q[a] = acc + b2[a]
 
@@ -199,11 +205,7 @@ def sgd_row(w1t, b1, w2, b2, x, p, a, s, g, x2, p2, p_next, q_next):  # noqa: AN
     c = s * (xx2 + 1.0)
     for j in range(width):
         p_next[j] = p2[j] + c * g[j]
-    for a2 in range(w2.shape[0]):
-        acc = 0.0
-        for j in range(width):
-            acc += w2[a2, j] * max(p_next[j], 0.0)
-        q_next[a2] = acc + b2[a2]
+    output_row(w2, b2, p_next, q_next)
 
 
 @njit(**_JIT)
