@@ -21,6 +21,8 @@ class ConfigError(ValueError):
     is allowed."""
 
 
+REPLAY_WHEN = ("terminated", "truncated", "any")
+"""Episodes that qualify for episodic replay (:class:`ReplayConfig`)."""
 CONTROLLERS = ("h2", "hinf", "hinf_f", "ddqn", "none")
 """Controller names: gain-scheduled H2, dynamic H∞, fixed-structure H∞, Double DQN, none."""
 
@@ -101,6 +103,41 @@ class PaperDesign:
 
 
 @dataclass
+class LearningTarget:
+    """The learning target a controller keeps (docs/synthesis.md, "Learning target").
+
+    With ``u = −k1 Q1 − k2 Q2 + k3 x_e`` the controlled TD term is
+    ``r + (γ − k2) Q2 − (1 + k1) Q1 + k3 x_e = (1 + k1)(r/(1 + k1) + γ_eff Q2 − Q1) + k3 x_e``:
+    the fixed point of learning is that of a Bellman equation with the effective discount
+    ``γ_eff = (γ − k2)/(1 + k1)``, and ``1 + k1`` scales every SGD step.  Synthesis keeps both
+    inside these ranges (for a dynamic controller: its DC gain from [Q1, Q2] to u).
+    """
+
+    gamma_eff: list[float] = field(default_factory=lambda: [-3.0, -2.0])
+    """[lower, upper] of the effective discount γ_eff = (γ − k2)/(1 + k1)."""
+    step_scale: list[float] = field(default_factory=lambda: [0.6, 1.0])
+    """[lower, upper] of the step scale 1 + k1 (> 0)."""
+
+
+@dataclass
+class ReplayConfig:
+    """Episodic replay (paper Sec. 4, remark on replay; research code on Acrobot): after an
+    episode that qualifies, its final transitions pass again through the same controlled
+    update, ``repeats`` times, in temporal order."""
+
+    repeats: int = 0
+    """Passes over the replayed transitions after a qualifying episode (0: off)."""
+    last: int | None = 1
+    """Replay the episode's last this many transitions (1: the final one, as the research
+    code; null: the whole episode)."""
+    when: str = "terminated"
+    """Which episodes qualify: terminated (the MDP ended, e.g. the goal was reached),
+    truncated (the time limit), any."""
+    min_return: float | None = None
+    """Only episodes whose return is at least this qualify (null: no bound)."""
+
+
+@dataclass
 class WeightsConfig:
     name: str = "cartpole"
     """Name of this weight set."""
@@ -114,6 +151,10 @@ class WeightsConfig:
     """NTK box used by the robust designs when it is not measured."""
     paper: PaperDesign = field(default_factory=PaperDesign)
     """The research code's hand-copied designs, used with controller.design=paper."""
+    target: LearningTarget = field(default_factory=LearningTarget)
+    """Learning target of the synthesised designs (γ_eff and 1 + k1 ranges)."""
+    replay: ReplayConfig = field(default_factory=ReplayConfig)
+    """Episodic replay of the controlled agents."""
 
 
 @dataclass
@@ -212,8 +253,9 @@ class TrainConfig:
     """ε stops decreasing once below this value."""
     eps_dec: float = 1e-4
     """Decrease of ε after each random action (research code)."""
-    bootstrap_terminal: bool = True
-    """Controlled agents bootstrap from max Q(s') at terminal steps too (research code)."""
+    bootstrap_terminal: bool = False
+    """Bootstrap from max Q(s') at terminal steps too (the research code's behaviour); by
+    default only truncated steps (the time limit) bootstrap, terminal ones do not."""
     q_limit: float = 1e6
     """|Q| above this value ends the run as diverged."""
     fast_path: bool = True
@@ -394,6 +436,34 @@ def validate(cfg: Config) -> None:
                 )
             )
         checks.append((w.w_delta > 0, f"weights.{group}.w_delta={w.w_delta}: must be > 0"))
+    tgt = cfg.weights.target
+    g_eff, scale = list(tgt.gamma_eff), list(tgt.step_scale)
+    checks.append(
+        (
+            len(g_eff) == 2 and g_eff[0] <= g_eff[1],
+            f"weights.target.gamma_eff={g_eff}: need [lower, upper] with lower <= upper",
+        )
+    )
+    checks.append(
+        (
+            len(scale) == 2 and 0 < scale[0] <= scale[1],
+            f"weights.target.step_scale={scale}: need [lower, upper] with 0 < lower <= upper",
+        )
+    )
+    rp = cfg.weights.replay
+    checks.append((rp.repeats >= 0, f"weights.replay.repeats={rp.repeats}: must be >= 0 (0: off)"))
+    checks.append(
+        (
+            rp.last is None or rp.last >= 1,
+            f"weights.replay.last={rp.last}: must be >= 1 or null (the whole episode)",
+        )
+    )
+    checks.append(
+        (
+            rp.when in REPLAY_WHEN,
+            f"weights.replay.when={rp.when!r}: allowed {', '.join(REPLAY_WHEN)}",
+        )
+    )
     tb = cfg.weights.theta_bounds
     for name in ("theta1", "ratio"):
         rng = list(getattr(tb, name))

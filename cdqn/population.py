@@ -38,7 +38,8 @@ from omegaconf import DictConfig, OmegaConf, read_write
 from tqdm.auto import tqdm
 
 from cdqn.agents.base import StepRecord
-from cdqn.config import Config, resolve_tracking_uri, validate
+from cdqn.agents.episodic_replay import PopulationTail, qualifies
+from cdqn.config import Config, ReplayConfig, resolve_tracking_uri, validate
 from cdqn.control.factory import ControllerSetup, make_controller
 from cdqn.envs import env_sizes, make_env
 from cdqn.interrupt import GracefulStop
@@ -130,13 +131,15 @@ def train_population(
     progress: bool = False,
     should_stop: Callable[[], bool] | None = None,
     max_steps: int | None = None,
+    replay: ReplayConfig | None = None,
 ) -> None:
     """The training loop of :func:`cdqn.trainer.train` for all members at once.
 
     Each member's environment is seeded with its seed at its first episode.  A member that
     finishes its ``episodes`` or diverges leaves the batch (``on_member_end`` is called with
     the member, the agent and its row, before the row is dropped).  ``max_steps`` (for the
-    benchmark) ends the loop after that many population steps.
+    benchmark) ends the loop after that many population steps.  ``replay``: episodic replay
+    after each member's qualifying episode, as :func:`cdqn.trainer.train` does it.
     """
     members = list(members)
     obs = np.stack([venv.reset(j, m.seed) for j, m in enumerate(members)])
@@ -146,6 +149,10 @@ def train_population(
     ret = np.zeros(len(members))
     ep = np.array([m.episode for m in members], dtype=float)
     staging = _Staging(len(members))
+    tail = None
+    if replay is not None and replay.repeats > 0:
+        cap = replay.last or getattr(venv.envs[0].spec, "max_episode_steps", None) or 10_000
+        tail = PopulationTail(len(members), obs.shape[1], cap)
     bar = tqdm(total=episodes * len(members), disable=not progress, unit="ep", leave=True)
     steps = 0
     try:
@@ -154,6 +161,8 @@ def train_population(
             out = venv.step(actions)
             rows = staging.next_block(members)
             flagged = agent.update(actions, out, ep, t, ret, rows, q_limit)
+            if tail is not None:
+                tail.append(obs, actions, out.reward, out.obs, out.terminated)
             obs = out.obs
             leaving: list[int] = []
             if flagged:
@@ -180,6 +189,26 @@ def train_population(
                 for j in np.flatnonzero(flags == DONE):
                     m = members[j]
                     staging.flush(j, m)
+                    replayed = 0
+                    end = (bool(out.terminated[j]), bool(out.truncated[j]), float(ret[j]))
+                    if tail is not None and qualifies(replay, *end):  # type: ignore[arg-type]
+                        steps_j = min(int(t[j]), replay.last or int(t[j]))  # type: ignore[union-attr]
+                        replayed = agent.replay(
+                            j,
+                            tail.transitions(j, steps_j),
+                            replay.repeats,
+                            q_limit,  # type: ignore[union-attr]
+                        )
+                        if replayed < 0:
+                            err = DivergenceError(
+                                f"update {-replayed - 1} of episodic replay failed the divergence "
+                                "test",
+                                m.episode,
+                                int(t[j] - 1),
+                            )
+                            m.status, m.reason = "FAILED", f"diverged: {err}"
+                            leaving.append(j)
+                            continue
                     x_c = agent.controller.state(j)
                     if x_c is not None and not np.all(np.isfinite(x_c)):
                         err = DivergenceError(
@@ -190,7 +219,9 @@ def train_population(
                         continue
                     m.returns.append(float(ret[j]))
                     start = m.signals.n - int(t[j])
-                    stats = episode_stats(m.episode, m.signals.rows(start), m.returns, discount)
+                    stats = episode_stats(
+                        m.episode, m.signals.rows(start), m.returns, discount, replayed
+                    )
                     m.episode += 1
                     if on_episode is not None:
                         on_episode(m, stats)
@@ -220,6 +251,8 @@ def train_population(
                     break
                 agent.select(keep)
                 venv.select(keep)
+                if tail is not None:
+                    tail.select(keep)
                 staging.select(keep, members)
                 obs, t, ret, ep = obs[keep], t[keep], ret[keep], ep[keep]
     finally:
@@ -349,6 +382,7 @@ def run_population(cfg: DictConfig, progress: bool = True) -> PopulationResult:
                 on_member_end=on_member_end,
                 progress=progress and conf.train.progress,
                 should_stop=stop.requested,
+                replay=conf.weights.replay,
             )
         except BaseException as err:  # close the members' runs that are still open
             for m in members:

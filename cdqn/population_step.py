@@ -28,6 +28,7 @@ import numpy as np
 from numba import njit
 
 from cdqn.agents.base import explore_ahead
+from cdqn.agents.episodic_replay import Transitions
 from cdqn.config import TrainConfig
 from cdqn.control.kernels import scheduled_lqr_step, state_space_step, static_gain_u
 from cdqn.control.runtime import (
@@ -229,6 +230,19 @@ class ControlledPopulation:
             self.flags, self.loss_seen,
         )  # fmt: skip
 
+    def replay(self, k: int, tail: Transitions, repeats: int, q_limit: float) -> int:
+        """Episodic replay of member ``k`` (:func:`_replay_kernel`); returns the number of
+        updates, negative (−(i + 1)) when update ``i`` failed the divergence test."""
+        n, c = self.net, self.controller
+        dtype = self.x.dtype
+        return _replay_kernel(
+            k, n.w1t, n.b1, n.w2, n.b2, self.x, self.p, self.q, *self.scratch,
+            np.ascontiguousarray(tail.obs, dtype=dtype), tail.actions, tail.rewards,
+            np.ascontiguousarray(tail.next_obs, dtype=dtype), tail.terminated, repeats,
+            self.hyper, self.bootstrap_terminal, c.kind, c.gains, c.loss_weight, c.Ad, c.Bd, c.C,
+            c.D, c.x, c.w_x, c.w_c, c.research, c.unsolved, self.x_e, q_limit,
+        )  # fmt: skip
+
     def select(self, keep: np.ndarray) -> None:
         """Keep only the members ``keep`` (indices, in that order)."""
         self.net.select(keep)
@@ -264,47 +278,62 @@ def _act_kernel(w1t, b1, w2, b2, obs, x, p, q, plan, actions):  # noqa: ANN001, 
 
 
 @njit(cache=True)
+def _controlled_step(k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, a, reward, terminated,
+                     alpha, discount, bootstrap_terminal, kind, gains, loss_weight, Ad, Bd, C, D,
+                     xc, w_x, w_c, research, unsolved, x_e):  # fmt: skip  # noqa: ANN001, ANN202
+    """Member ``k``'s controlled step on the transition ``(x[k], a, reward, x2)``, in the order
+    of operations of :meth:`cdqn.agents.ControlledAgent.update`: ``x[k], p[k], q[k]`` hold the
+    pass at ``s``, ``x2`` holds ``s'``; afterwards they hold the pass at ``s'`` with the new
+    parameters.  Returns ``(Q1, Q2, u, x_e, Θ1, Θ2, loss)``."""
+    forward_row(w1t[k], b1[k], w2[k], b2[k], x2, p2, q2s)
+    b = np.argmax(q2s)
+    q1, q2 = float(q[k, a]), float(q2s[b])
+    scratch[0], scratch[1] = td_row(w2[k], x[k], p[k], x2, p2, a, b, g)
+    theta1, theta2 = float(scratch[0]), float(scratch[1])
+    q_next = q2 if (bootstrap_terminal or not terminated) else 0.0
+
+    error = reward + discount * q_next - q1
+    x_e[k] += alpha * error
+    xe = x_e[k]
+    if kind == NO_CONTROL:
+        u = 0.0
+    elif kind == STATIC_GAIN:
+        u = static_gain_u(gains[k, 0], gains[k, 1], gains[k, 2], xe, q1, q_next)
+    elif kind == STATE_SPACE:
+        u = state_space_step(Ad, Bd, C, D, xc[k], xe, q1, q_next)
+    else:
+        u, loss_weight[k], solved = scheduled_lqr_step(
+            theta1, theta2, discount, w_x, w_c, research, gains[k], xe, q1, q_next
+        )
+        if not solved:
+            unsolved[k] += 1
+    delta = error + u
+    loss = 0.5 * loss_weight[k] * delta * delta
+    scratch[2] = alpha * delta
+    # the step; the member's pass becomes the one at s' with the new parameters
+    sgd_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], a, scratch[2], g, x2, p2, p[k], q[k])
+    for i in range(x2.shape[0]):
+        x[k, i] = x2[i]
+    return q1, q2, u, xe, theta1, theta2, loss
+
+
+@njit(cache=True)
 def _update_kernel(w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, actions, reward,
                    next_obs, terminated, truncated, hyper, bootstrap_terminal, kind, gains,
                    loss_weight, Ad, Bd, C, D, xc, w_x, w_c, research, unsolved, x_e, ep, t,
                    ret, rows, q_limit, flags, loss_seen):  # fmt: skip  # noqa: ANN001, ANN202
-    """:meth:`ControlledPopulation.update` (module docstring), member by member, in the
-    order of operations of :meth:`cdqn.agents.ControlledAgent.update`."""
+    """:meth:`ControlledPopulation.update` (module docstring), member by member
+    (:func:`_controlled_step`)."""
     alpha, discount = hyper[0], hyper[1]
     flagged = 0
     for k in range(actions.shape[0]):
         for i in range(x2.shape[0]):
             x2[i] = next_obs[k, i]
-        forward_row(w1t[k], b1[k], w2[k], b2[k], x2, p2, q2s)
-        a, b = actions[k], np.argmax(q2s)
-        q1, q2 = float(q[k, a]), float(q2s[b])
-        scratch[0], scratch[1] = td_row(w2[k], x[k], p[k], x2, p2, a, b, g)
-        theta1, theta2 = float(scratch[0]), float(scratch[1])
-        q_next = q2 if (bootstrap_terminal or not terminated[k]) else 0.0
-
-        error = reward[k] + discount * q_next - q1
-        x_e[k] += alpha * error
-        xe = x_e[k]
-        if kind == NO_CONTROL:
-            u = 0.0
-        elif kind == STATIC_GAIN:
-            u = static_gain_u(gains[k, 0], gains[k, 1], gains[k, 2], xe, q1, q_next)
-        elif kind == STATE_SPACE:
-            u = state_space_step(Ad, Bd, C, D, xc[k], xe, q1, q_next)
-        else:
-            u, loss_weight[k], solved = scheduled_lqr_step(
-                theta1, theta2, discount, w_x, w_c, research, gains[k], xe, q1, q_next
-            )
-            if not solved:
-                unsolved[k] += 1
-        delta = error + u
-        loss = 0.5 * loss_weight[k] * delta * delta
-        scratch[2] = alpha * delta
-        # the step; the member's pass becomes the one at s' with the new parameters
-        sgd_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], a, scratch[2], g, x2, p2, p[k], q[k])
-        for i in range(x2.shape[0]):
-            x[k, i] = x2[i]
-
+        q1, q2, u, xe, theta1, theta2, loss = _controlled_step(
+            k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, actions[k], reward[k],
+            terminated[k], alpha, discount, bootstrap_terminal, kind, gains, loss_weight, Ad, Bd,
+            C, D, xc, w_x, w_c, research, unsolved, x_e,
+        )  # fmt: skip
         row = rows[k]
         row[0], row[1], row[2], row[3], row[4] = ep[k], t[k], reward[k], q1, q2
         row[5], row[6], row[7], row[8], row[9] = u, xe, theta1, theta2, loss
@@ -320,3 +349,39 @@ def _update_kernel(w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, actions, r
             loss_seen[k] = True
         flagged += flags[k] != 0
     return flagged
+
+
+@njit(cache=True)
+def _replay_kernel(k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, obs, actions, rewards,
+                   next_obs, terminated, repeats, hyper, bootstrap_terminal, kind, gains,
+                   loss_weight, Ad, Bd, C, D, xc, w_x, w_c, research, unsolved, x_e,
+                   q_limit):  # fmt: skip  # noqa: ANN001, ANN202
+    """Episodic replay of member ``k``: ``repeats`` passes over the transitions
+    ``(obs[i], actions[i], rewards[i], next_obs[i], terminated[i])`` in order, each through
+    :func:`_controlled_step` after the forward pass at ``obs[i]`` (reused when the member's
+    pass already holds it, as :meth:`cdqn.agents.ControlledAgent.update` reuses its cached
+    pass).  Returns the number of updates, or ``−(i + 1)`` when update ``i`` failed the
+    divergence test."""
+    alpha, discount = hyper[0], hyper[1]
+    n = 0
+    for _ in range(repeats):
+        for j in range(obs.shape[0]):
+            same = True
+            for i in range(obs.shape[1]):
+                if obs[j, i] != x[k, i]:
+                    same = False
+            if not same:
+                for i in range(obs.shape[1]):
+                    x[k, i] = obs[j, i]
+                forward_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], q[k])
+            for i in range(x2.shape[0]):
+                x2[i] = next_obs[j, i]
+            q1, q2, u, xe, theta1, theta2, loss = _controlled_step(
+                k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, actions[j], rewards[j],
+                terminated[j], alpha, discount, bootstrap_terminal, kind, gains, loss_weight, Ad,
+                Bd, C, D, xc, w_x, w_c, research, unsolved, x_e,
+            )  # fmt: skip
+            if not (math.isfinite(u + xe + loss) and max(abs(q1), abs(q2)) <= q_limit):
+                return -(n + 1)
+            n += 1
+    return n

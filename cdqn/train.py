@@ -292,6 +292,7 @@ def _train(
                 progress=progress and conf.train.progress,
                 desc=f"{conf.env.name}/{conf.controller.name}/s{conf.seed}",
                 should_stop=stop.requested,
+                replay=conf.weights.replay if conf.controller.name != "ddqn" else None,
             )
             if state.episode < episodes:  # a signal stopped training at an episode boundary
                 status = "KILLED"

@@ -14,6 +14,8 @@ from numba import njit
 from tqdm.auto import tqdm
 
 from cdqn.agents.base import Agent, StepRecord
+from cdqn.agents.episodic_replay import EpisodeTail, qualifies
+from cdqn.config import ReplayConfig
 from cdqn.signals import SignalBuffer
 
 
@@ -38,6 +40,8 @@ class EpisodeStats:
     theta1_mean: float
     unstable_fraction: float
     """Share of the episode's steps with Θ1 < γ Θ2 (the nominal model unstable)."""
+    replay_updates: int = 0
+    """Updates of episodic replay after the episode (:mod:`cdqn.agents.episodic_replay`)."""
 
     def metrics(self) -> dict[str, float]:
         return {k: float(v) for k, v in vars(self).items() if k != "episode"}
@@ -53,7 +57,7 @@ class TrainState:
 
 
 def episode_stats(
-    episode: int, rows: np.ndarray, returns: list[float], discount: float
+    episode: int, rows: np.ndarray, returns: list[float], discount: float, replay_updates: int = 0
 ) -> EpisodeStats:
     """Summarise one episode's rows of the signal table (columns of :mod:`cdqn.signals`)."""
     loss_mean, u_abs_mean, theta1_mean, unstable = _episode_means(rows, discount)
@@ -66,6 +70,7 @@ def episode_stats(
         u_abs_mean=u_abs_mean,
         theta1_mean=theta1_mean,
         unstable_fraction=unstable,
+        replay_updates=replay_updates,
     )
 
 
@@ -101,6 +106,7 @@ def train(
     progress: bool = True,
     desc: str = "",
     should_stop: Callable[[], bool] | None = None,
+    replay: ReplayConfig | None = None,
 ) -> TrainState:
     """Run ``episodes`` episodes (from ``state.episode`` on) and return the final state.
 
@@ -110,7 +116,8 @@ def train(
     end of an episode; everything up to that step is in ``signals``.  A NaN loss before the
     first finite one means "no update yet" (Double DQN before ``learning_starts``).
     ``should_stop`` is asked after each episode; when it answers True the loop returns
-    early, at an episode boundary.
+    early, at an episode boundary.  ``replay``: episodic replay of the controlled agents
+    (:mod:`cdqn.agents.episodic_replay`) after each qualifying episode.
     """
     state = state or TrainState()
     bar = tqdm(
@@ -125,16 +132,21 @@ def train(
     recent = deque(maxlen=20)
     controller = getattr(agent, "controller", None)
     loss_seen = False
+    tail = EpisodeTail(replay) if replay is not None and replay.repeats > 0 else None
     try:
         while state.episode < episodes:
             ep = state.episode
             obs, _ = env.reset(seed=seed if ep == 0 else None)
             agent.start_episode()
             start_row, ret, t0 = signals.n, 0.0, time.perf_counter()
+            if tail is not None:
+                tail.clear()
             for t in range(1_000_000_000):
                 action = agent.act(obs)
                 next_obs, reward, terminated, truncated, _ = env.step(action)
                 rec = agent.update(obs, action, float(reward), next_obs, bool(terminated))
+                if tail is not None:
+                    tail.append(obs, action, float(reward), next_obs, bool(terminated))
                 signals.append(ep, t, float(reward), rec)
                 if not (
                     abs(rec.q1) <= q_limit
@@ -148,6 +160,12 @@ def train(
                 obs = next_obs
                 if terminated or truncated:
                     break
+            replayed = 0
+            if tail is not None and qualifies(replay, bool(terminated), bool(truncated), ret):
+                for rec in agent.replay(tail.transitions(), replay.repeats):  # type: ignore[attr-defined]
+                    if not _healthy(rec, q_limit):
+                        _diagnose(rec, q_limit, ep, t)
+                    replayed += 1
             x_c = getattr(controller, "x", None)
             if x_c is not None and not np.all(np.isfinite(x_c)):
                 raise DivergenceError(f"non-finite controller state x_c = {x_c}", ep, t)
@@ -155,7 +173,7 @@ def train(
             length = signals.n - start_row
             state.total_steps += length
             state.episode += 1
-            stats = episode_stats(ep, signals.rows(start_row), state.returns, discount)
+            stats = episode_stats(ep, signals.rows(start_row), state.returns, discount, replayed)
             recent.append((length, time.perf_counter() - t0))
             if on_episode is not None:
                 on_episode(stats, state)
@@ -173,6 +191,15 @@ def train(
     finally:
         bar.close()
     return state
+
+
+def _healthy(rec: StepRecord, q_limit: float) -> bool:
+    """The divergence test of a replayed update (every one has a finite loss)."""
+    return (
+        abs(rec.q1) <= q_limit
+        and abs(rec.q2) <= q_limit
+        and math.isfinite(rec.u + rec.x_e + rec.loss)
+    )
 
 
 def _diagnose(rec: StepRecord, q_limit: float, ep: int, t: int) -> None:

@@ -118,6 +118,7 @@ def _single(overrides: list[str]) -> tuple[str, str | None, list[float], np.ndar
             signals=signals,
             state=state,
             progress=False,
+            replay=conf.weights.replay,
         )
     except DivergenceError as err:
         status, reason = "FAILED", f"diverged: {err}"
@@ -136,6 +137,7 @@ def _population(overrides: list[str], seeds: list[int]) -> list[Member]:
         episodes=conf.train.episodes,
         discount=conf.train.discount,
         q_limit=conf.train.q_limit,
+        replay=conf.weights.replay,
     )
     return members
 
@@ -148,14 +150,25 @@ def _population(overrides: list[str], seeds: list[int]) -> list[Member]:
         ("cartpole", "h2", []),
         ("acrobot", "hinf", []),
         ("mountaincar", "hinf", ["network.dtype=float32"]),
-        ("cartpole", "h2", ["controller.h2_gain_map=paper", "train.bootstrap_terminal=false"]),
+        ("cartpole", "h2", ["controller.h2_gain_map=paper", "train.bootstrap_terminal=true"]),
+        (
+            "cartpole",
+            "hinf_f",
+            ["weights.replay.repeats=3", "weights.replay.when=any", "weights.replay.last=4"],
+        ),
+        ("cartpole", "h2", ["weights.replay.repeats=2", "weights.replay.last=null"]),
+        (
+            "mountaincar",
+            "hinf",
+            ["weights.replay.repeats=2", "weights.replay.when=truncated", "weights.replay.last=3"],
+        ),
     ],
 )
 def test_population_members_step_exactly_as_single_runs(
     env: str, controller: str, extra: list[str]
 ) -> None:
     """Every per-step signal (Q1, Q2, u, x_e, Θ1, Θ2, loss) and every return of a member
-    equals the single run of its seed, bit for bit."""
+    equals the single run of its seed, bit for bit (episodic replay included)."""
     overrides = [*BASE, f"env={env}", f"controller={controller}", *extra]
     if env == "acrobot":
         overrides += ["train.episodes=2"]

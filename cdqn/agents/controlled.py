@@ -5,7 +5,9 @@ Per step (paper Sec. 4, Δt = α):
 
 1. ``Q1 = Q(s, a)``, ``Q2 = max_a' Q(s', a')``, and the NTK values
    ``Θ1 = Θ((s,a),(s,a))``, ``Θ2 = Θ((s,a),(s',a'))`` in closed form;
-2. tracking error ``e = r + γ Q2 − Q1`` and integrator ``x_e ← x_e + α e``
+2. tracking error ``e = r + γ Q̂2 − Q1``, where ``Q̂2 = Q2`` except at a terminal step
+   (the MDP ended: no bootstrap, ``Q̂2 = 0``; a truncated step, the time limit, bootstraps),
+   and integrator ``x_e ← x_e + α e``
    (paper Eq. xi, explicit Euler at Δt = α as in the research code);
 3. control reward ``u = K(x_e, Q1, Q2)`` from the runtime controller;
 4. SGD step on the controlled loss.  With ``δ = r + γ Q2 − Q1 + u`` every loss used here
@@ -16,12 +18,14 @@ Per step (paper Sec. 4, Δt = α):
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 import torch
 
 from cdqn.agents.base import EpsilonGreedy, StepRecord
+from cdqn.agents.episodic_replay import Transitions
 from cdqn.config import TrainConfig
 from cdqn.control.runtime import RuntimeController, ScheduledLQR, StaticGain
 from cdqn.network import FastTwoLayer, Forward, QNetwork
@@ -113,6 +117,19 @@ class ControlledAgent:
         else:
             loss = self._autograd_step(obs, action, reward, q_next, u)
         return StepRecord(loss, q1, q2, u, self.x_e, theta1, theta2)
+
+    def replay(self, tail: Transitions, repeats: int) -> Iterator[StepRecord]:
+        """Episodic replay (:mod:`cdqn.agents.episodic_replay`): ``repeats`` passes over
+        ``tail`` in temporal order, each transition through :meth:`update`."""
+        for _ in range(repeats):
+            for i in range(len(tail.actions)):
+                yield self.update(
+                    tail.obs[i],
+                    int(tail.actions[i]),
+                    float(tail.rewards[i]),
+                    tail.next_obs[i],
+                    bool(tail.terminated[i]),
+                )
 
     def _autograd_step(
         self, obs: np.ndarray, action: int, reward: float, q_next: float, u: float
