@@ -60,8 +60,8 @@ class ControllerArrays:
 
     ``gains`` ``(K, 3)``: static gains, or the H2 controller's last gains; ``loss_weight``
     ``(K,)``; ``Ad, Bd, C, D`` and the states ``x`` ``(K, n)`` of a state-space controller
-    (empty otherwise); ``w_x, w_c, research`` of the scheduled H2 and its per-member count
-    of steps without an LQR solution, ``unsolved``.
+    (empty otherwise); ``w_x, w_c, research, target`` of the scheduled H2 and its per-member
+    count of steps without an LQR solution, ``unsolved``.
     """
 
     kind: int
@@ -77,6 +77,7 @@ class ControllerArrays:
     research: bool
     reset_state: bool
     unsolved: np.ndarray
+    target: np.ndarray
 
     @classmethod
     def of(cls, controller: RuntimeController, k: int) -> ControllerArrays:
@@ -88,6 +89,7 @@ class ControllerArrays:
         C = D = w_x = np.zeros(0)
         n = 0
         w_c, research, reset_state = 0.0, False, False
+        target = np.zeros(0)
         if isinstance(controller, StaticGain):
             gains[:] = (controller.k1, controller.k2, controller.k3)
         elif isinstance(controller, StateSpace):
@@ -96,9 +98,11 @@ class ControllerArrays:
         elif isinstance(controller, ScheduledLQR):
             gains[:] = controller.gains
             w_x, w_c, research = controller.w_x, controller.w_c, controller.research_map
+            target = controller.target
         return cls(
             kind, gains, np.full(k, float(controller.loss_weight)), Ad, Bd, C, D,
             np.zeros((k, n)), w_x, w_c, research, reset_state, np.zeros(k, dtype=np.int64),
+            target,
         )  # fmt: skip
 
     def reset(self, i: int) -> None:
@@ -226,7 +230,7 @@ class ControlledPopulation:
             n.w1t, n.b1, n.w2, n.b2, self.x, self.p, self.q, *self.scratch, actions,
             step.reward, step.obs, step.terminated, step.truncated, self.hyper,
             self.bootstrap_terminal, c.kind, c.gains, c.loss_weight, c.Ad, c.Bd, c.C, c.D, c.x,
-            c.w_x, c.w_c, c.research, c.unsolved, self.x_e, ep, t, ret, rows, q_limit,
+            c.w_x, c.w_c, c.research, c.target, c.unsolved, self.x_e, ep, t, ret, rows, q_limit,
             self.flags, self.loss_seen,
         )  # fmt: skip
 
@@ -240,7 +244,7 @@ class ControlledPopulation:
             np.ascontiguousarray(tail.obs, dtype=dtype), tail.actions, tail.rewards,
             np.ascontiguousarray(tail.next_obs, dtype=dtype), tail.terminated, repeats,
             self.hyper, self.bootstrap_terminal, c.kind, c.gains, c.loss_weight, c.Ad, c.Bd, c.C,
-            c.D, c.x, c.w_x, c.w_c, c.research, c.unsolved, self.x_e, q_limit,
+            c.D, c.x, c.w_x, c.w_c, c.research, c.target, c.unsolved, self.x_e, q_limit,
         )  # fmt: skip
 
     def select(self, keep: np.ndarray) -> None:
@@ -280,7 +284,7 @@ def _act_kernel(w1t, b1, w2, b2, obs, x, p, q, plan, actions):  # noqa: ANN001, 
 @njit(cache=True)
 def _controlled_step(k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, a, reward, terminated,
                      alpha, discount, bootstrap_terminal, kind, gains, loss_weight, Ad, Bd, C, D,
-                     xc, w_x, w_c, research, unsolved, x_e):  # fmt: skip  # noqa: ANN001, ANN202
+                     xc, w_x, w_c, research, target, unsolved, x_e):  # fmt: skip  # noqa: ANN001, ANN202
     """Member ``k``'s controlled step on the transition ``(x[k], a, reward, x2)``, in the order
     of operations of :meth:`cdqn.agents.ControlledAgent.update`: ``x[k], p[k], q[k]`` hold the
     pass at ``s``, ``x2`` holds ``s'``; afterwards they hold the pass at ``s'`` with the new
@@ -303,7 +307,7 @@ def _controlled_step(k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, a, re
         u = state_space_step(Ad, Bd, C, D, xc[k], xe, q1, q_next)
     else:
         u, loss_weight[k], solved = scheduled_lqr_step(
-            theta1, theta2, discount, w_x, w_c, research, gains[k], xe, q1, q_next
+            theta1, theta2, discount, w_x, w_c, research, target, gains[k], xe, q1, q_next
         )
         if not solved:
             unsolved[k] += 1
@@ -320,8 +324,8 @@ def _controlled_step(k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, a, re
 @njit(cache=True)
 def _update_kernel(w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, actions, reward,
                    next_obs, terminated, truncated, hyper, bootstrap_terminal, kind, gains,
-                   loss_weight, Ad, Bd, C, D, xc, w_x, w_c, research, unsolved, x_e, ep, t,
-                   ret, rows, q_limit, flags, loss_seen):  # fmt: skip  # noqa: ANN001, ANN202
+                   loss_weight, Ad, Bd, C, D, xc, w_x, w_c, research, target, unsolved, x_e, ep,
+                   t, ret, rows, q_limit, flags, loss_seen):  # fmt: skip  # noqa: ANN001, ANN202
     """:meth:`ControlledPopulation.update` (module docstring), member by member
     (:func:`_controlled_step`)."""
     alpha, discount = hyper[0], hyper[1]
@@ -332,7 +336,7 @@ def _update_kernel(w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, actions, r
         q1, q2, u, xe, theta1, theta2, loss = _controlled_step(
             k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, actions[k], reward[k],
             terminated[k], alpha, discount, bootstrap_terminal, kind, gains, loss_weight, Ad, Bd,
-            C, D, xc, w_x, w_c, research, unsolved, x_e,
+            C, D, xc, w_x, w_c, research, target, unsolved, x_e,
         )  # fmt: skip
         row = rows[k]
         row[0], row[1], row[2], row[3], row[4] = ep[k], t[k], reward[k], q1, q2
@@ -354,7 +358,7 @@ def _update_kernel(w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, actions, r
 @njit(cache=True)
 def _replay_kernel(k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, obs, actions, rewards,
                    next_obs, terminated, repeats, hyper, bootstrap_terminal, kind, gains,
-                   loss_weight, Ad, Bd, C, D, xc, w_x, w_c, research, unsolved, x_e,
+                   loss_weight, Ad, Bd, C, D, xc, w_x, w_c, research, target, unsolved, x_e,
                    q_limit):  # fmt: skip  # noqa: ANN001, ANN202
     """Episodic replay of member ``k``: ``repeats`` passes over the transitions
     ``(obs[i], actions[i], rewards[i], next_obs[i], terminated[i])`` in order, each through
@@ -379,7 +383,7 @@ def _replay_kernel(k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, obs, ac
             q1, q2, u, xe, theta1, theta2, loss = _controlled_step(
                 k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, actions[j], rewards[j],
                 terminated[j], alpha, discount, bootstrap_terminal, kind, gains, loss_weight, Ad,
-                Bd, C, D, xc, w_x, w_c, research, unsolved, x_e,
+                Bd, C, D, xc, w_x, w_c, research, target, unsolved, x_e,
             )  # fmt: skip
             if not (math.isfinite(u + xe + loss) and max(abs(q1), abs(q2)) <= q_limit):
                 return -(n + 1)

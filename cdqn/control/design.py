@@ -60,10 +60,11 @@ from cdqn.control.structured import (
     default_starts,
     tune_fixed_structure,
 )
+from cdqn.control.target import TargetBox, check_target, dc_gain, learning_target
 from cdqn.control.uncertainty import CoverFit, fit_cover
 from cdqn.control.weights import SisoWeight
 
-DESIGN_VERSION = 2
+DESIGN_VERSION = 3
 """Bumped whenever the synthesis changes its results; part of the cache key."""
 KINDS = ("hinf", "hinf_f")
 """Controllers that are synthesised (h2 is solved per step)."""
@@ -102,6 +103,8 @@ class DesignInputs:
     """Synthesis settings that affect the result."""
     discretization: str = "zoh"
     """Runtime discretisation of a dynamic controller (checked at Δt = α)."""
+    target: TargetBox | None = None
+    """Learning target (γ_eff and 1 + k1 ranges) the design keeps (:mod:`cdqn.control.target`)."""
 
     def key(self) -> str:
         payload = {
@@ -114,6 +117,7 @@ class DesignInputs:
             "h2": self.h2 if self.kind == "hinf_f" else None,
             "synthesis": self.synthesis,
             "discretization": self.discretization,
+            "target": None if self.target is None else self.target.to_dict(),
         }
         text = json.dumps(payload, sort_keys=True, default=float)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
@@ -151,6 +155,7 @@ def design_inputs(
         h2=asdict(weights.h2),
         synthesis=syn,
         discretization=cfg.discretization,
+        target=TargetBox.of(weights.target),
     )
 
 
@@ -185,6 +190,9 @@ class ControllerDesign:
     """Wall time of the synthesis (without plots)."""
     key: str = ""
     """Hash of the design inputs."""
+    learning: dict[str, Any] = field(default_factory=dict)
+    """The learning target the controller keeps at DC (:func:`cdqn.control.target.learning_target`)
+    and the target it was asked to keep."""
 
     def to_json(self) -> dict[str, Any]:
         K = self.controller
@@ -208,6 +216,7 @@ class ControllerDesign:
             "seconds": self.seconds,
             "key": self.key,
             "details": self.details,
+            "learning_target": self.learning,
         }
         if self.gains is not None:
             out["gains"] = list(self.gains)
@@ -278,14 +287,17 @@ def _design_hinf(inputs: DesignInputs, samples: np.ndarray, cover: CoverFit) -> 
     chosen: tuple[ControllerMatrices, Certificate] | None = None
     for order in range(order0, K_full.nstates + 1):
         try:
-            K = truncate(K_full, order)
+            K_order = truncate(K_full, order)
         except Exception as err:  # SLICOT refuses an order: try the next one
             tried.append({"order": order, "error": str(err)})
             continue
-        cert = _certify(K, inputs, samples)
-        tried.append({"order": order, "passed": cert.passed, "worst_pole": cert.worst_pole})
-        if cert.passed:
-            chosen = (K, cert)
+        for K in _dc_on_target(K_order, inputs):
+            cert = _certify(K, inputs, samples)
+            tried.append({"order": order, "passed": cert.passed, "worst_pole": cert.worst_pole})
+            if cert.passed:
+                chosen = (K, cert)
+                break
+        if chosen is not None:
             break
         if chosen is None or order == K_full.nstates:
             last = (K, cert)
@@ -335,6 +347,32 @@ def _design_hinf(inputs: DesignInputs, samples: np.ndarray, cover: CoverFit) -> 
     )
 
 
+def _dc_on_target(K: ControllerMatrices, inputs: DesignInputs) -> list[ControllerMatrices]:
+    """``K`` with its DC gain from [Q1, Q2] moved into the learning target
+    (:mod:`cdqn.control.target`): ``D`` shifted by the difference between the target point and
+    ``K(0)``, which changes the DC gain and leaves the dynamics (poles, the shape of
+    ``K(s) − K(0)``) as synthesised.  Candidates in order: the target point nearest to
+    ``K(0)``, then the target's centre.  Without a target: ``[K]``."""
+    if inputs.target is None:
+        return [K]
+    k3, mk1, mk2 = dc_gain(K)
+    if not np.all(np.isfinite([k3, mk1, mk2])):
+        raise DesignError(
+            "hinf design: the controller has an integrator (singular A), so its DC gain cannot "
+            f"be placed in the learning target {inputs.target.to_dict()}"
+        )
+    g = inputs.discount
+    points = [inputs.target.project(-mk1, -mk2, g)]
+    points.append(inputs.target.gains(*inputs.target.centre(), g))
+    out = []
+    for k1, k2 in points:
+        D = np.array(K.D, float).reshape(1, 3).copy()
+        D[0, 1] -= k1 - (-mk1)
+        D[0, 2] -= k2 - (-mk2)
+        out.append(ControllerMatrices(K.A, K.B, K.C, D))
+    return out
+
+
 def _design_hinf_f(inputs: DesignInputs, samples: np.ndarray, cover: CoverFit) -> ControllerDesign:
     syn = inputs.synthesis
     ws = _weight_set(inputs.weights, "")
@@ -362,6 +400,7 @@ def _design_hinf_f(inputs: DesignInputs, samples: np.ndarray, cover: CoverFit) -
         int(syn["restarts"]),
         int(syn["seed"]),
         syn["plant"],
+        inputs.target,
     )
     res = tune_fixed_structure(
         samples,
@@ -371,6 +410,7 @@ def _design_hinf_f(inputs: DesignInputs, samples: np.ndarray, cover: CoverFit) -
         margin=float(syn["decay"]),
         lr=inputs.lr,
         plant=syn["plant"],
+        target=inputs.target,
     )
     K = ControllerMatrices.static(*res.gains)
     cert = _certify(K, inputs, samples)
@@ -416,6 +456,8 @@ def design_controller(inputs: DesignInputs) -> ControllerDesign:
         raise DesignError(f"design kind {inputs.kind!r}: allowed {', '.join(KINDS)}")
     check_plant(syn["plant"])
     _check_discrete_feasible(inputs)
+    if inputs.target is not None:
+        check_target(inputs.target, inputs.box)
     samples = inputs.box.sample(int(syn["samples"]), int(syn["seed"]))
     cover = fit_cover(
         samples,
@@ -431,6 +473,8 @@ def design_controller(inputs: DesignInputs) -> ControllerDesign:
         design = _design_hinf_f(inputs, samples, cover)
     design.seconds = time.perf_counter() - t0
     design.key = inputs.key()
+    design.learning = learning_target(design.controller, inputs.discount, inputs.box, inputs.lr)
+    design.learning["target"] = None if inputs.target is None else inputs.target.to_dict()
     if not design.certificate.passed:
         raise DesignError(
             f"{inputs.kind} design for the box Θ1 ∈ {list(inputs.box.theta1)}, Θ2/Θ1 ∈ "
@@ -504,6 +548,13 @@ def report(design: ControllerDesign) -> str:
             f"gains (k1, k2, k3) = ({k1:.6g}, {k2:.6g}, {k3:.6g}); worst-case H∞ over samples "
             f"= {design.gamma:.6g} (start {design.details['start_source']}: "
             f"{[round(v, 6) for v in design.details['start']]})"
+        )
+    lt = design.learning
+    if lt:
+        lines.append(
+            f"learning target kept{' at DC' if design.kind == 'hinf' else ''}: γ_eff = "
+            f"{lt['gamma_eff']:.6g}, 1 + k1 = {lt['step_scale']:.6g} (target {lt.get('target')}); "
+            f"largest α(1 + k1)Θ1 over the box = {lt['max_step_gain']:.4g}"
         )
     lines.append(
         f"certificate: {'PASSED' if c.passed else 'FAILED'} on {c.n_points} points; stable share "

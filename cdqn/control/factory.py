@@ -47,6 +47,8 @@ def make_controller(
     if name in ("none", "ddqn"):
         return ControllerSetup(NoControl(), source="none")
     if name == "h2":
+        if cfg.design == "synthesize":
+            return _scheduled_h2(cfg, weights, discount, lr, box)
         w_x, w_c = list(weights.h2.w_x), weights.h2.w_c
         ctrl = ScheduledLQR(discount, w_x, w_c, cfg.h2_gain_map)
         design = {"kind": "h2", "w_x": w_x, "w_c": w_c, "gain_map": cfg.h2_gain_map}
@@ -58,6 +60,59 @@ def make_controller(
 
         return synthesized_controller(cfg, weights, discount, lr, box)
     raise ConfigError(f"controller.design={cfg.design!r}: allowed paper, synthesize")
+
+
+def _scheduled_h2(
+    cfg: ControllerConfig, weights: WeightsConfig, discount: float, lr: float, box: Any
+) -> ControllerSetup:
+    """The gain-scheduled H2 with the learning target of ``weights.target``, certified over
+    the NTK box frozen at every sample and grid point (:func:`cdqn.control.h2.certify_scheduled`);
+    :class:`DesignError` when the certificate fails."""
+    from cdqn.control.design import box_from_config  # noqa: PLC0415
+    from cdqn.control.errors import DesignError  # noqa: PLC0415
+    from cdqn.control.h2 import certify_scheduled  # noqa: PLC0415
+    from cdqn.control.target import TargetBox, check_target  # noqa: PLC0415
+
+    w_x, w_c = list(weights.h2.w_x), weights.h2.w_c
+    target = TargetBox.of(weights.target)
+    ntk_box = box if box is not None else box_from_config(weights.theta_bounds)
+    check_target(target, ntk_box)
+    syn = cfg.synthesis
+    research = cfg.h2_gain_map == "research"
+    cert, rows = certify_scheduled(
+        ntk_box, discount, np.asarray(w_x), w_c, research, target.array(), lr, syn.samples,
+        (int(syn.grid[0]), int(syn.grid[1])), syn.seed, syn.margin, syn.plant,
+    )  # fmt: skip
+    if not cert.passed:
+        raise DesignError(
+            f"h2 design with the learning target {target.to_dict()} over the box Θ1 ∈ "
+            f"{list(ntk_box.theta1)}, Θ2/Θ1 ∈ {list(ntk_box.ratio)} failed its certificate: "
+            f"{cert.reason()}"
+        )
+    k1, k2, k3 = rows[:, 2], rows[:, 3], rows[:, 4]
+    scale = 1.0 + k1
+    g_eff = (discount - k2) / scale
+    learning = {
+        "gamma_eff": [float(g_eff.min()), float(g_eff.max())],
+        "step_scale": [float(scale.min()), float(scale.max())],
+        "k3": [float(k3.min()), float(k3.max())],
+        "max_step_gain": float(np.max(lr * scale * rows[:, 0])),
+        "target": target.to_dict(),
+    }
+    design = {
+        "kind": "h2",
+        "w_x": w_x,
+        "w_c": w_c,
+        "gain_map": cfg.h2_gain_map,
+        "theta_bounds": {"theta1": list(ntk_box.theta1), "ratio": list(ntk_box.ratio)},
+        "box_source": ntk_box.source,
+        "discount": discount,
+        "certificate": cert.to_dict(),
+        "learning_target": learning,
+        "source": "synthesized",
+    }
+    ctrl = ScheduledLQR(discount, w_x, w_c, cfg.h2_gain_map, target.array())
+    return ControllerSetup(ctrl, source="scheduled", design=design)
 
 
 def _paper_controller(cfg: ControllerConfig, weights: WeightsConfig, lr: float) -> ControllerSetup:

@@ -43,6 +43,11 @@ Matching ``det(sI − A + B K) = p(s)`` coefficient by coefficient gives the gai
 With the paper's gains ``u = −k1 Q1 − k2 Q2 + k3 x_e`` this is
 ``(k1, k2, k3) = (K_1, K_2, −K_3)``.  :func:`h2_gains_batch` evaluates the same formulas
 for arrays of operating points (one per member of a population).
+
+Learning target (:mod:`cdqn.control.target`): the LQR weights say nothing about the fixed
+point of learning, so every step's (k1, k2) is moved into ``weights.target``
+(:func:`cdqn.control.kernels.project_target`); :func:`certify_scheduled` checks the scheduled
+loop over the NTK box, frozen at each point.
 """
 
 from __future__ import annotations
@@ -50,7 +55,19 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from cdqn.control.kernels import H2_SOLVED, H2_UNCONTROLLABLE, h2_closed_form
+from cdqn.control.box import NTKBox
+from cdqn.control.certificate import (
+    Certificate,
+    ControllerMatrices,
+    max_discrete_modulus,
+    max_real_poles,
+)
+from cdqn.control.kernels import (
+    H2_SOLVED,
+    H2_UNCONTROLLABLE,
+    h2_closed_form,
+    scheduled_lqr_step,
+)
 from cdqn.control.plant import augmented_plant, check_plant, reduction_basis
 
 
@@ -146,3 +163,74 @@ def h2_gains_plant(
     W = N.T @ np.diag(np.asarray(w_x, dtype=float)) @ N
     K = lqr_gain(N.T @ p.A @ N, N.T @ p.B_u, W, float(w_c)) @ N.T
     return float(K[0]), float(K[1]), float(-K[2])
+
+
+def scheduled_gains(
+    points: np.ndarray,
+    discount: float,
+    w_x: np.ndarray,
+    w_c: float,
+    research: bool,
+    target: np.ndarray,
+) -> np.ndarray:
+    """``(P, 3)`` gains (k1, k2, k3) the gain-scheduled H2 applies at each (Θ1, Θ2), through
+    the runtime kernel itself (:func:`cdqn.control.kernels.scheduled_lqr_step`: closed form,
+    gain map, learning target); NaN rows where no LQR exists."""
+    out = np.full((len(points), 3), np.nan)
+    w = np.ascontiguousarray(w_x, dtype=float)
+    for i, (t1, t2) in enumerate(np.atleast_2d(points)):
+        gains = np.zeros(3)
+        _, _, solved = scheduled_lqr_step(
+            float(t1), float(t2), discount, w, float(w_c), research, target, gains, 0.0, 0.0, 0.0
+        )
+        if solved:
+            out[i] = gains
+    return out
+
+
+def certify_scheduled(
+    box: NTKBox,
+    discount: float,
+    w_x: np.ndarray,
+    w_c: float,
+    research: bool,
+    target: np.ndarray,
+    lr: float,
+    samples: int,
+    grid: tuple[int, int],
+    seed: int,
+    margin: float,
+    plant: str,
+) -> tuple[Certificate, np.ndarray]:
+    """Frozen-parameter certificate of the gain-scheduled H2 over the NTK box: at every sample
+    and grid point (Θ1, Θ2) the static loop with the gains scheduled there
+    (:func:`scheduled_gains`) must be stable in continuous time and at Δt = α
+    (:mod:`cdqn.control.certificate`).  Returns the certificate and ``(P, 5)`` rows
+    (Θ1, Θ2, k1, k2, k3)."""
+    pts = np.vstack([box.sample(samples, seed), box.grid(*grid)])
+    gains = scheduled_gains(pts, discount, w_x, w_c, research, target)
+    re = np.full(len(pts), np.inf)
+    mod = np.full(len(pts), np.inf)
+    for i, k in enumerate(gains):
+        if np.all(np.isfinite(k)) and k[0] > -1.0:
+            K = ControllerMatrices.static(*k)
+            re[i] = max_real_poles(pts[i : i + 1], discount, K, plant)[0]
+            mod[i] = max_discrete_modulus(pts[i : i + 1], discount, K, lr, "zoh", plant)[0]
+    stable = re < -margin
+    worst, worst_d = int(np.argmax(re)), int(np.argmax(mod))
+    bad = ~stable | (mod >= 1.0)
+    cert = Certificate(
+        passed=bool(stable.all() and (mod < 1.0).all()),
+        n_points=len(pts),
+        share_stable=float(stable.mean()),
+        share_stable_grid=float(stable[samples:].mean()),
+        worst_pole=float(re[worst]),
+        worst_point=(float(pts[worst, 0]), float(pts[worst, 1])),
+        margin=margin,
+        plant=plant,
+        discrete_checked=True,
+        worst_discrete_modulus=float(mod[worst_d]),
+        worst_discrete_point=(float(pts[worst_d, 0]), float(pts[worst_d, 1])),
+        unstable_points=pts[bad][:20].tolist(),
+    )
+    return cert, np.column_stack([pts, gains])

@@ -85,17 +85,35 @@ def h2_closed_form(a, b, g, w1, w2, w3, wc):  # noqa: ANN001, ANN201
 
 
 @njit(cache=True)
-def scheduled_lqr_step(theta1, theta2, g, w_x, wc, research, gains, x_e, q1, q2):  # noqa: ANN001, ANN201
+def project_target(k1, k2, g, target):  # noqa: ANN001, ANN201
+    """(k1, k2) moved into the learning target ``target = [γ_eff lo, γ_eff hi, 1 + k1 lo,
+    1 + k1 hi]`` (:mod:`cdqn.control.target`): ``1 + k1`` and ``γ_eff = (γ − k2)/(1 + k1)``
+    clipped to their ranges (``γ_eff`` taken at the range's centre where ``1 + k1 ≤ 0``)."""
+    scale = 1.0 + k1
+    if scale > 0.0:
+        g_eff = (g - k2) / scale
+    else:
+        g_eff = 0.5 * (target[0] + target[1])
+    s = min(max(scale, target[2]), target[3])
+    g_eff = min(max(g_eff, target[0]), target[1])
+    return s - 1.0, g - g_eff * s
+
+
+@njit(cache=True)
+def scheduled_lqr_step(theta1, theta2, g, w_x, wc, research, target, gains, x_e, q1, q2):  # noqa: ANN001, ANN201
     """One step of the gain-scheduled H2 controller (paper Sec. 4.1): the gains of
     :func:`h2_closed_form` at this step's (Θ1, Θ2), mapped by the paper
-    (``(k1, k2, k3)``) or the research code (``(k3, −k2, k1)``, ``research``); where no
-    LQR exists the previous gains (``gains``, updated in place) are kept.  Returns
+    (``(k1, k2, k3)``) or the research code (``(k3, −k2, k1)``, ``research``), then (k1, k2)
+    moved into the learning ``target`` (:func:`project_target`; an empty array: none); where
+    no LQR exists the previous gains (``gains``, updated in place) are kept.  Returns
     ``(u, 1/(1 + k1), solved)``."""
     k1, k2, k3, status = h2_closed_form(theta1, theta2, g, w_x[0], w_x[1], w_x[2], wc)
     solved = status == H2_SOLVED
     if solved:
         if research:
             k1, k2, k3 = k3, -k2, k1
+        if target.shape[0] == 4:
+            k1, k2 = project_target(k1, k2, g, target)
         gains[0], gains[1], gains[2] = k1, k2, k3
     else:
         k1, k2, k3 = gains[0], gains[1], gains[2]

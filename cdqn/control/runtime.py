@@ -60,14 +60,21 @@ class ScheduledLQR:
     ``gain_map="paper"`` applies ``u = −K x_a`` as the paper writes it,
     ``(k1, k2, k3) = (K_1, K_2, −K_3)``.  ``gain_map="research"`` applies the research
     code's assignment ``(k1, k2, k3) = (−K_3, −K_2, K_1)``, which is not the LQR's closed
-    loop on the model but is what produced the paper's H2 results.
+    loop on the model but is what produced the paper's H2 results.  ``target``
+    (``[γ_eff lo, γ_eff hi, 1 + k1 lo, 1 + k1 hi]``, :mod:`cdqn.control.target`) moves every
+    step's (k1, k2) into the learning target.
 
     Where no stabilising LQR exists at a step's (Θ1, Θ2) (e.g. Θ2 = 0 leaves Q2
     uncontrollable), the previous step's gains are kept and ``unsolved_steps`` counts it.
     """
 
     def __init__(
-        self, discount: float, w_x: list[float], w_c: float, gain_map: str = "paper"
+        self,
+        discount: float,
+        w_x: list[float],
+        w_c: float,
+        gain_map: str = "paper",
+        target: np.ndarray | None = None,
     ) -> None:
         if gain_map not in ("paper", "research"):
             raise ValueError(f"controller.h2_gain_map={gain_map!r}: allowed paper, research")
@@ -75,6 +82,7 @@ class ScheduledLQR:
         self.w_x = np.asarray(w_x, dtype=float)
         self.w_c = float(w_c)
         self.research_map = gain_map == "research"
+        self.target = np.zeros(0) if target is None else np.asarray(target, dtype=float)
         self._gains = np.zeros(3)
         self.loss_weight = 1.0
         self.unsolved_steps = 0
@@ -89,8 +97,8 @@ class ScheduledLQR:
 
     def step(self, x_e: float, q1: float, q2: float, theta1: float, theta2: float) -> float:
         u, self.loss_weight, solved = scheduled_lqr_step(
-            theta1, theta2, self.discount, self.w_x, self.w_c, self.research_map, self._gains,
-            x_e, q1, q2,
+            theta1, theta2, self.discount, self.w_x, self.w_c, self.research_map, self.target,
+            self._gains, x_e, q1, q2,
         )  # fmt: skip
         if not solved:
             self.unsolved_steps += 1

@@ -46,6 +46,7 @@ from cdqn.control.plant import (
     reduce_batch,
     reduction_basis,
 )
+from cdqn.control.target import TargetBox
 from cdqn.control.weights import SisoWeight
 
 
@@ -202,13 +203,20 @@ def violation(
     margin: float,
     lr: float | None,
     plant: str = DEFAULT_PLANT,
+    target: TargetBox | None = None,
 ) -> float:
     """Constraint value, < 0 when feasible: ``max Re λ + margin`` of the continuous-time loops
     and, with ``lr``, ``(max |λ_d| − 1)/α + margin`` of the loops at Δt = α (the same
     units: ``|λ_d| ≈ 1 + α Re λ``); both on the minimal part of the loop
-    (:mod:`cdqn.control.certificate`)."""
+    (:mod:`cdqn.control.certificate`).  With a learning ``target``
+    (:mod:`cdqn.control.target`), gains outside it are infeasible: the value is then
+    ``1e3`` times their distance from it (so that a search is led into it)."""
     if k[0] <= -1.0:
         return 1e6 * (1.0 - k[0])
+    if target is not None:
+        dist = target.distance(float(k[0]), float(k[1]), discount)
+        if dist > 0.0:
+            return 1e3 * (dist + 1e-3)
     K = ControllerMatrices.static(float(k[0]), float(k[1]), float(k[2]))
     v = float(np.max(max_real_poles(points, discount, K, plant))) + margin
     if lr is not None:
@@ -223,15 +231,16 @@ def _search(
     margin: float,
     max_iter: int,
     lr: float | None,
+    target: TargetBox | None = None,
 ) -> tuple[np.ndarray | None, float]:
     """Best (gains, grid objective) over ``starts`` on the samples of ``loops``."""
     points, discount, plant = loops.points, loops.discount, loops.plant
 
     def worst_pole(k: np.ndarray) -> float:
-        return violation(k, points, discount, margin, lr, plant) - margin
+        return violation(k, points, discount, margin, lr, plant, target) - margin
 
     def objective(k: np.ndarray) -> float:
-        if violation(k, points, discount, margin, lr, plant) >= 0:
+        if violation(k, points, discount, margin, lr, plant, target) >= 0:
             return np.inf
         _, norms = loops.grid_norms((float(k[0]), float(k[1]), float(k[2])))
         return float(np.max(norms))
@@ -284,6 +293,7 @@ def tune_fixed_structure(
     n_active: int = 12,
     lr: float | None = None,
     plant: str = DEFAULT_PLANT,
+    target: TargetBox | None = None,
 ) -> FixedStructureResult:
     """Multi-start Nelder–Mead tuning of (k1, k2, k3) (module docstring).
 
@@ -292,6 +302,7 @@ def tune_fixed_structure(
     join the active set and the search resumes from the best gains, until the gains
     stabilise every sample and the active set holds the worst-case sample.  The result is
     never worse (exact norm) than the first start when that start stabilises every sample.
+    With a learning ``target`` every gain the search accepts keeps it (:func:`violation`).
 
     Raises :class:`DesignError` when no start reaches gains that stabilise every sample.
     """
@@ -302,18 +313,21 @@ def tune_fixed_structure(
     all_loops = PerformanceLoops(pts, discount, weights, omega, plant)
     active = list(range(min(n_active, len(pts))))
     first = np.asarray(starts[0], float)
-    start_ok = violation(first, pts, discount, margin, lr, plant) < 0
+    start_ok = violation(first, pts, discount, margin, lr, plant, target) < 0
     start_obj = float(np.max(all_loops.grid_norms(tuple(first))[1])) if start_ok else np.inf
     candidates = [np.asarray(s, float) for s in starts]
     best_k: np.ndarray | None = None
     for _ in range(10):
         loops = PerformanceLoops(pts[active], discount, weights, omega, plant)
-        k, _f = _search(loops, candidates, margin, max_iter, lr)
+        k, _f = _search(loops, candidates, margin, max_iter, lr, target)
         if k is None:
             break
         _, norms = all_loops.grid_norms((float(k[0]), float(k[1]), float(k[2])))
         viol = np.array(
-            [violation(k, pts[i : i + 1], discount, margin, lr, plant) for i in range(len(pts))]
+            [
+                violation(k, pts[i : i + 1], discount, margin, lr, plant, target)
+                for i in range(len(pts))
+            ]
         )
         best_k = k
         bad = [int(i) for i in np.argsort(-viol) if viol[i] >= 0 and i not in active]
@@ -322,18 +336,19 @@ def tune_fixed_structure(
             break
         active += bad[:4] + ([worst] if worst not in active else [])
         candidates = [k]
+    within = "" if target is None else f" within the learning target {target.to_dict()}"
     if best_k is None:
         raise DesignError(
-            f"fixed-structure design: none of {len(starts)} starts reached gains that "
+            f"fixed-structure design: none of {len(starts)} starts reached gains{within} that "
             f"stabilise the plant samples ({len(pts)} samples, margin {margin:g})"
         )
     _, norms = all_loops.grid_norms(tuple(best_k))
-    v = violation(best_k, pts, discount, margin, lr, plant)
+    v = violation(best_k, pts, discount, margin, lr, plant, target)
     if v >= 0:
         raise DesignError(
             "fixed-structure design: the tuned gains "
             f"{tuple(round(float(x), 6) for x in best_k)} do not stabilise every plant sample "
-            f"with decay rate {margin:g} (constraint value {v:.4g})"
+            f"with decay rate {margin:g}{within} (constraint value {v:.4g})"
         )
     gains = (float(best_k[0]), float(best_k[1]), float(best_k[2]))
     worst = float(np.max(all_loops.exact_norms(gains)))
@@ -353,6 +368,7 @@ def default_starts(
     n_random: int,
     seed: int,
     plant: str = DEFAULT_PLANT,
+    target: TargetBox | None = None,
 ) -> list[tuple[float, float, float]]:
     """``first``, then random gains in the stabilising region of the box (the Routh–Hurwitz
     conditions of :func:`cdqn.control.plant.static_closed_loop` for ρ > 0).
@@ -360,10 +376,26 @@ def default_starts(
     Gradient-flow plant: ``(1 + k1) Θ1 > (γ − k2) Θ2`` at every sample, i.e. the effective
     discount ``(γ − k2)/(1 + k1) < 1/ρ_max``, and ``k3 > 0``; drawn as ``1 + k1`` in
     ``[0.5, 3]``, ``(γ − k2)/(1 + k1)`` in ``[−2, 0.95]/ρ_max`` and ``k3`` log-uniform in
-    ``[1e-2, 1]``.  Paper plant: ``1 + k1 > γ·ρ_max``, ``k2 < −γ k1``, ``k3 < 0``."""
+    ``[1e-2, 1]``.  Paper plant: ``1 + k1 > γ·ρ_max``, ``k2 < −γ k1``, ``k3 < 0``.
+
+    With a learning ``target``: ``first`` with its (k1, k2) projected into the target, then
+    ``1 + k1`` and ``γ_eff`` uniform in the target's ranges (``γ_eff`` capped below
+    ``1/ρ_max``) and ``k3`` as above."""
     check_plant(plant)
     rng = np.random.default_rng(seed)
     out = [tuple(float(v) for v in first)]
+    if target is not None:
+        k1, k2 = target.project(first[0], first[1], discount)
+        k3 = first[2] if first[2] > 0 else 0.1
+        out = [(float(k1), float(k2), float(k3))]
+        g_hi = min(target.gamma_eff[1], 0.99 / ratio_max)
+        g_lo = min(target.gamma_eff[0], g_hi)
+        for _ in range(n_random):
+            k1, k2 = target.gains(
+                rng.uniform(g_lo, g_hi), rng.uniform(*target.step_scale), discount
+            )
+            out.append((float(k1), float(k2), float(10.0 ** rng.uniform(-2, 0))))
+        return out
     for _ in range(n_random):
         if plant == "gradient_flow":
             one_k1 = rng.uniform(0.5, 3.0)

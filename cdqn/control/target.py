@@ -1,0 +1,129 @@
+"""The learning target a controller keeps: effective discount and step scale.
+
+A controller changes the fixed point of the learning update, not only its stability.  With
+the static law ``u = −k1 Q1 − k2 Q2 + k3 x_e`` (paper Sec. 4.1, 4.3) the TD term of a step is
+
+.. math::  r + (\\gamma - k_2) Q_2 - (1 + k_1) Q_1 + k_3 x_e
+           = (1 + k_1)\\Big(\\frac{r}{1 + k_1} + \\gamma_{\\rm eff} Q_2 - Q_1\\Big) + k_3 x_e,
+           \\qquad \\gamma_{\\rm eff} = \\frac{\\gamma - k_2}{1 + k_1},
+
+so learning settles where ``Q1 = r/(1+k1) + γ_eff Q2`` (``x_e`` is reset every episode and
+integrates at ``Δt = α``): a Bellman equation with the *effective discount* ``γ_eff``,
+while ``1 + k1`` (the *step scale*) multiplies every SGD step, ``α(1 + k1)Θ1`` being the
+step's gain on Q1.  A robust design that leaves these free trades them for robustness: on
+the gradient-flow plant the worst-case H∞ objective is smallest for ``γ_eff → 0`` (the
+agent learns the immediate reward only).  So they are design inputs (``weights.target``):
+
+* static designs (``hinf_f``, ``h2``) keep ``(γ_eff, 1 + k1)`` in the target box;
+* a dynamic design keeps its DC gain from ``[Q1, Q2]`` to ``u``,
+  ``K(0) = D − C A^{-1} B``, in the box: ``k1 = −K(0)_{Q1}``, ``k2 = −K(0)_{Q2}``.
+
+Stability over the NTK box bounds what a target may ask: on the gradient-flow plant the fast
+mode of the static loop is ``(1 + k1) Θ1 (γ_eff ρ − 1)`` with ``ρ = Θ2/Θ1``, stable only where
+``γ_eff ρ < 1``, i.e. ``γ_eff < 1/ρ_max`` for a positive effective discount
+(:func:`check_target`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from cdqn.control.box import NTKBox
+from cdqn.control.certificate import ControllerMatrices
+from cdqn.control.errors import DesignError
+from cdqn.control.kernels import project_target
+
+
+@dataclass(frozen=True)
+class TargetBox:
+    """Ranges of the effective discount γ_eff and of the step scale 1 + k1."""
+
+    gamma_eff: tuple[float, float]
+    step_scale: tuple[float, float]
+
+    @classmethod
+    def of(cls, cfg: Any) -> TargetBox:
+        """From ``weights.target`` (a :class:`cdqn.config.LearningTarget` or a dict)."""
+        get = cfg.get if isinstance(cfg, dict) else lambda k: getattr(cfg, k)
+        g, s = get("gamma_eff"), get("step_scale")
+        return cls((float(g[0]), float(g[1])), (float(s[0]), float(s[1])))
+
+    def to_dict(self) -> dict[str, list[float]]:
+        return {"gamma_eff": list(self.gamma_eff), "step_scale": list(self.step_scale)}
+
+    def centre(self) -> tuple[float, float]:
+        """(γ_eff, 1 + k1) at the centre of the box."""
+        return (0.5 * sum(self.gamma_eff), 0.5 * sum(self.step_scale))
+
+    def distance(self, k1: float, k2: float, discount: float) -> float:
+        """0 inside the box, else the distance of (γ_eff, 1 + k1) from it (γ_eff measured in
+        units of its range's width, at least 1)."""
+        scale = 1.0 + k1
+        if scale <= 0.0:
+            return 1.0 + self.step_scale[0] - scale
+        g = (discount - k2) / scale
+        d_s = max(self.step_scale[0] - scale, scale - self.step_scale[1], 0.0)
+        width = max(self.gamma_eff[1] - self.gamma_eff[0], 1.0)
+        d_g = max(self.gamma_eff[0] - g, g - self.gamma_eff[1], 0.0) / width
+        return d_s + d_g
+
+    def array(self) -> np.ndarray:
+        """``[γ_eff lo, γ_eff hi, 1 + k1 lo, 1 + k1 hi]``, as the compiled kernels take it."""
+        return np.array([*self.gamma_eff, *self.step_scale], dtype=float)
+
+    def project(self, k1: float, k2: float, discount: float) -> tuple[float, float]:
+        """(k1, k2) moved into the box in the (γ_eff, 1 + k1) coordinates
+        (:func:`cdqn.control.kernels.project_target`)."""
+        p1, p2 = project_target(float(k1), float(k2), float(discount), self.array())
+        return float(p1), float(p2)
+
+    def gains(self, gamma_eff: float, step_scale: float, discount: float) -> tuple[float, float]:
+        """(k1, k2) of a point (γ_eff, 1 + k1)."""
+        return step_scale - 1.0, discount - gamma_eff * step_scale
+
+
+def dc_gain(K: ControllerMatrices) -> np.ndarray:
+    """``K(0) = D − C A^{-1} B`` from ``[x_e, Q1, Q2]`` to ``u`` (``D`` for a static gain);
+    ``inf`` entries where ``A`` is singular (an integrator in the controller)."""
+    D = np.asarray(K.D, float).reshape(3)
+    if K.nstates == 0:
+        return D.copy()
+    try:
+        return D - (K.C @ np.linalg.solve(K.A, K.B)).reshape(3)
+    except np.linalg.LinAlgError:
+        return np.full(3, np.inf)
+
+
+def learning_target(K: ControllerMatrices, discount: float, box: NTKBox, lr: float) -> dict:
+    """What a design keeps at DC: ``k1, k2, k3`` (u = −k1 Q1 − k2 Q2 + k3 x_e at DC),
+    ``gamma_eff``, ``step_scale`` = 1 + k1, and ``max_step_gain`` = the largest
+    ``α (1 + k1) Θ1`` over the box (the SGD step's gain on Q1; near 2 the discrete loop
+    reaches its edge)."""
+    k3, mk1, mk2 = dc_gain(K)
+    k1, k2 = -float(mk1), -float(mk2)
+    scale = 1.0 + k1
+    g = (discount - k2) / scale if scale != 0 else float("nan")
+    return {
+        "k1": k1,
+        "k2": k2,
+        "k3": float(k3),
+        "gamma_eff": float(g),
+        "step_scale": float(scale),
+        "max_step_gain": float(lr * scale * box.theta1[1]),
+    }
+
+
+def check_target(target: TargetBox, box: NTKBox) -> None:
+    """Refuse a target no controller can keep stable over the box (module docstring): the
+    whole γ_eff range at or above ``1/ρ_max``."""
+    rho_max = box.ratio[1]
+    if target.gamma_eff[0] * rho_max >= 1.0:
+        raise DesignError(
+            f"weights.target.gamma_eff={list(target.gamma_eff)} conflicts with the NTK box "
+            f"(Θ2/Θ1 up to {rho_max:g}): the learning loop is stable over the box only for "
+            f"γ_eff < 1/ρ_max = {1.0 / rho_max:.4g}; lower the effective discount or narrow "
+            "the box's ratio range (weights.theta_bounds.ratio)"
+        )
