@@ -1,0 +1,99 @@
+"""The learning target (effective discount γ_eff, step scale 1 + k1) as a design input: every
+synthesised controller keeps it, a target the box cannot hold is refused by name."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from cdqn.config import Config
+from cdqn.control.certificate import ControllerMatrices
+from cdqn.control.design import box_from_config, design_inputs, load_or_design
+from cdqn.control.errors import DesignError
+from cdqn.control.factory import make_controller
+from cdqn.control.h2 import scheduled_gains
+from cdqn.control.target import TargetBox, dc_gain
+from tests.conftest import compose_config
+
+FAST = [
+    "controller.synthesis.samples=40",
+    "controller.synthesis.restarts=1",
+    "controller.synthesis.grid=[9,9]",
+]
+TARGET = ["weights.target.gamma_eff=[-2.0,-1.0]", "weights.target.step_scale=[0.5,0.9]"]
+"""A target unlike every shipped one, so that keeping it is the design's doing."""
+
+
+def _conf(kind: str, extra: list[str]) -> Config:
+    cfg = compose_config(["env=cartpole", f"controller={kind}", *FAST, *TARGET, *extra])
+    return OmegaConf.to_object(cfg)  # type: ignore[return-value]
+
+
+def _inside(k1: float, k2: float, discount: float = 1.0) -> bool:
+    scale = 1.0 + k1
+    g_eff = (discount - k2) / scale
+    return -2.0 - 1e-9 <= g_eff <= -1.0 + 1e-9 and 0.5 - 1e-9 <= scale <= 0.9 + 1e-9
+
+
+def test_projection_moves_gains_into_the_target_and_keeps_those_inside() -> None:
+    target = TargetBox((-2.0, -1.0), (0.5, 0.9))
+    assert target.project(-0.3, 2.05, 1.0) == pytest.approx((-0.3, 2.05))  # inside: kept
+    for k1, k2 in [(49.0, 0.998), (0.0, 0.0), (-0.95, 5.0), (-3.0, 1.0), (2.0, -7.0)]:
+        p1, p2 = target.project(k1, k2, 1.0)
+        assert _inside(p1, p2)
+        assert target.distance(p1, p2, 1.0) == pytest.approx(0.0, abs=1e-12)
+    assert target.distance(49.0, 0.998, 1.0) > 0
+
+
+@pytest.mark.parametrize("kind", ["hinf_f", "hinf"])
+def test_synthesised_designs_keep_the_learning_target(kind: str, tmp_path: Path) -> None:
+    conf = _conf(kind, [])
+    inputs = design_inputs(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
+    record, folder, _ = load_or_design(inputs, tmp_path)
+    assert record["certificate"]["passed"]
+    lt = record["learning_target"]
+    assert lt["target"] == {"gamma_eff": [-2.0, -1.0], "step_scale": [0.5, 0.9]}
+    n = len(record["A"])
+    K = ControllerMatrices(
+        np.asarray(record["A"], float).reshape(n, n),
+        np.asarray(record["B"], float).reshape(n, 3),
+        np.asarray(record["C"], float).reshape(1, n),
+        np.asarray(record["D"], float).reshape(1, 3),
+    )
+    k3, mk1, mk2 = dc_gain(K)
+    assert _inside(-mk1, -mk2)
+    assert lt["gamma_eff"] == pytest.approx((1.0 + mk2) / (1.0 - mk1))
+    assert lt["step_scale"] == pytest.approx(1.0 - mk1)
+    assert lt["max_step_gain"] == pytest.approx(conf.train.lr * (1.0 - mk1) * 800.0)
+    report = (folder / "report.txt").read_text()
+    assert "learning target kept" in report and "largest α(1 + k1)Θ1" in report
+
+
+def test_gain_scheduled_h2_keeps_the_target_at_every_point_and_is_certified() -> None:
+    conf = _conf("h2", [])
+    setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
+    assert setup.design["certificate"]["passed"]
+    box = box_from_config(conf.weights.theta_bounds)
+    pts = box.grid(7, 7)
+    gains = scheduled_gains(
+        pts, 1.0, np.asarray(conf.weights.h2.w_x), conf.weights.h2.w_c, True,
+        TargetBox.of(conf.weights.target).array(),
+    )  # fmt: skip
+    assert all(_inside(k1, k2) for k1, k2, _ in gains)
+    lo, hi = setup.design["learning_target"]["gamma_eff"]
+    assert -2.0 - 1e-9 <= lo <= hi <= -1.0 + 1e-9
+    # the runtime controller applies the same gains
+    ctrl = setup.controller
+    ctrl.step(0.0, 0.0, 0.0, *pts[3])
+    assert ctrl.gains == pytest.approx(tuple(gains[3]))
+
+
+@pytest.mark.parametrize("kind", ["hinf_f", "hinf", "h2"])
+def test_a_target_the_box_cannot_hold_is_refused_by_name(kind: str) -> None:
+    """CartPole's box has Θ2/Θ1 up to 1.2: no loop with γ_eff ≥ 1/1.2 is stable on it."""
+    conf = _conf(kind, ["weights.target.gamma_eff=[0.9,0.99]", "controller.synthesis.cache=false"])
+    with pytest.raises(DesignError, match=r"weights\.target\.gamma_eff=\[0\.9, 0\.99\]"):
+        make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
