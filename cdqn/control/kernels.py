@@ -90,10 +90,7 @@ def project_target(k1, k2, g, target):  # noqa: ANN001, ANN201
     1 + k1 hi]`` (:mod:`cdqn.control.target`): ``1 + k1`` and ``γ_eff = (γ − k2)/(1 + k1)``
     clipped to their ranges (``γ_eff`` taken at the range's centre where ``1 + k1 ≤ 0``)."""
     scale = 1.0 + k1
-    if scale > 0.0:
-        g_eff = (g - k2) / scale
-    else:
-        g_eff = 0.5 * (target[0] + target[1])
+    g_eff = (g - k2) / scale if scale > 0.0 else 0.5 * (target[0] + target[1])
     s = min(max(scale, target[2]), target[3])
     g_eff = min(max(g_eff, target[0]), target[1])
     return s - 1.0, g - g_eff * s
