@@ -285,23 +285,36 @@ def _design_hinf(inputs: DesignInputs, samples: np.ndarray, cover: CoverFit) -> 
     order0 = min(max(red.order_for(threshold), red.n_unstable), K_full.nstates)
     tried: list[dict[str, Any]] = []
     chosen: tuple[ControllerMatrices, Certificate] | None = None
+    last: tuple[ControllerMatrices, Certificate] | None = None
+    share = float("nan")
     for order in range(order0, K_full.nstates + 1):
         try:
             K_order = truncate(K_full, order)
         except Exception as err:  # SLICOT refuses an order: try the next one
             tried.append({"order": order, "error": str(err)})
             continue
-        for K in _dc_on_target(K_order, inputs):
+        for K, lam in _dc_on_target(K_order, inputs):
+            if inputs.target is not None and not _instantaneous_gain_stable(K, inputs, samples):
+                reason = "instantaneous gain D is not a stabilising static gain"
+                tried.append({"order": order, "dynamic_share": lam, "reason": reason})
+                continue
             cert = _certify(K, inputs, samples)
-            tried.append({"order": order, "passed": cert.passed, "worst_pole": cert.worst_pole})
+            tried.append({"order": order, "dynamic_share": lam, "passed": cert.passed,
+                          "worst_pole": cert.worst_pole})  # fmt: skip
             if cert.passed:
                 chosen = (K, cert)
+                share = lam
                 break
+            last = (K, cert)
         if chosen is not None:
             break
-        if chosen is None or order == K_full.nstates:
-            last = (K, cert)
     if chosen is None:
+        if last is None:
+            raise DesignError(
+                f"hinf design: with the learning target {inputs.target.to_dict()} (if any) no "
+                f"share λ in {list(DYNAMIC_SHARES)} of the synthesised dynamics leaves an "
+                "instantaneous gain that stabilises the box; widen weights.target or the box"
+            )
         K, cert = last
     else:
         K, cert = chosen
@@ -314,6 +327,7 @@ def _design_hinf(inputs: DesignInputs, samples: np.ndarray, cover: CoverFit) -> 
         "hsv": red.hsv.tolist(),
         "hsv_threshold": threshold,
         "orders_tried": tried,
+        "dynamic_share": share,
         "gamma_full_order": res.gamma,
         "gamma_reduced_grid": float(sv[:, 0].max()),
         "sb10ad_calls": res.iterations,
@@ -347,30 +361,51 @@ def _design_hinf(inputs: DesignInputs, samples: np.ndarray, cover: CoverFit) -> 
     )
 
 
-def _dc_on_target(K: ControllerMatrices, inputs: DesignInputs) -> list[ControllerMatrices]:
-    """``K`` with its DC gain from [Q1, Q2] moved into the learning target
-    (:mod:`cdqn.control.target`): ``D`` shifted by the difference between the target point and
-    ``K(0)``, which changes the DC gain and leaves the dynamics (poles, the shape of
-    ``K(s) − K(0)``) as synthesised.  Candidates in order: the target point nearest to
-    ``K(0)``, then the target's centre.  Without a target: ``[K]``."""
+DYNAMIC_SHARES = (1.0, 0.5, 0.25, 0.1, 0.05, 0.02, 0.01)
+"""Shares λ of the synthesised dynamics tried, largest first (:func:`_dc_on_target`)."""
+
+
+def _dc_on_target(
+    K: ControllerMatrices, inputs: DesignInputs
+) -> list[tuple[ControllerMatrices, float]]:
+    """Candidates ``(K_λ, λ)`` that keep the learning target (:mod:`cdqn.control.target`):
+
+    .. math::  K_\lambda(s) = K_t + \lambda\,(K(s) - K(0)),
+
+    with ``K_t`` the static gain of the target point nearest to ``K(0)``: its DC gain is
+    ``K_t`` exactly, and ``λ`` scales the synthesised dynamics around it (``A`` and ``B``
+    unchanged, ``C_λ = λC``, ``D_λ = K_t + λ(D − K(0))``).  A training step applies the
+    controller's instantaneous gain ``K_λ(∞) = D_λ`` while Θ1, Θ2 change from step to step, so
+    a candidate is kept only when ``D_λ`` is itself a stabilising static gain over the box
+    (continuous time and at Δt = α), besides the certificate of ``K_λ``; λ runs over
+    :data:`DYNAMIC_SHARES`.  Without a target: ``[(K, 1)]``."""
     if inputs.target is None:
-        return [K]
-    k3, mk1, mk2 = dc_gain(K)
-    if not np.all(np.isfinite([k3, mk1, mk2])):
+        return [(K, 1.0)]
+    dc = dc_gain(K)
+    if not np.all(np.isfinite(dc)):
         raise DesignError(
             "hinf design: the controller has an integrator (singular A), so its DC gain cannot "
             f"be placed in the learning target {inputs.target.to_dict()}"
         )
-    g = inputs.discount
-    points = [inputs.target.project(-mk1, -mk2, g)]
-    points.append(inputs.target.gains(*inputs.target.centre(), g))
+    k1, k2 = inputs.target.project(-dc[1], -dc[2], inputs.discount)
+    K_t = np.array([dc[0], -k1, -k2])
+    D = np.asarray(K.D, float).reshape(3)
     out = []
-    for k1, k2 in points:
-        D = np.array(K.D, float).reshape(1, 3).copy()
-        D[0, 1] -= k1 - (-mk1)
-        D[0, 2] -= k2 - (-mk2)
-        out.append(ControllerMatrices(K.A, K.B, K.C, D))
+    for lam in DYNAMIC_SHARES:
+        D_lam = (K_t + lam * (D - dc)).reshape(1, 3)
+        out.append((ControllerMatrices(K.A, K.B, lam * K.C, D_lam), lam))
     return out
+
+
+def _instantaneous_gain_stable(
+    K: ControllerMatrices, inputs: DesignInputs, samples: np.ndarray
+) -> bool:
+    """Whether ``K(∞) = D`` alone, as the static gain ``u = D [x_e, Q1, Q2]``, is stable over
+    the box (:func:`_dc_on_target`)."""
+    k3, mk1, mk2 = np.asarray(K.D, float).reshape(3)
+    if -mk1 <= -1.0:
+        return False
+    return _certify(ControllerMatrices.static(-mk1, -mk2, k3), inputs, samples).passed
 
 
 def _design_hinf_f(inputs: DesignInputs, samples: np.ndarray, cover: CoverFit) -> ControllerDesign:
