@@ -117,6 +117,9 @@ class LearningTarget:
     """[lower, upper] of the effective discount γ_eff = (γ − k2)/(1 + k1)."""
     step_scale: list[float] = field(default_factory=lambda: [0.6, 1.0])
     """[lower, upper] of the step scale 1 + k1 (> 0)."""
+    rho_cap: float | None = None
+    """h2 only (scheduled on Θ1, Θ2): cap γ_eff at rho_cap/ρ at each step, ρ = Θ2/Θ1
+    (0 < rho_cap < 1; null: no cap)."""
 
 
 @dataclass

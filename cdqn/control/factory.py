@@ -76,7 +76,7 @@ def _scheduled_h2(
     w_x, w_c = list(weights.h2.w_x), weights.h2.w_c
     target = TargetBox.of(weights.target)
     ntk_box = box if box is not None else box_from_config(weights.theta_bounds)
-    check_target(target, ntk_box)
+    check_target(target, ntk_box, scheduled=True)
     syn = cfg.synthesis
     research = cfg.h2_gain_map == "research"
     cert, rows = certify_scheduled(

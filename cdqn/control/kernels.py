@@ -85,14 +85,19 @@ def h2_closed_form(a, b, g, w1, w2, w3, wc):  # noqa: ANN001, ANN201
 
 
 @njit(cache=True)
-def project_target(k1, k2, g, target):  # noqa: ANN001, ANN201
+def project_target(k1, k2, g, target, rho):  # noqa: ANN001, ANN201
     """(k1, k2) moved into the learning target ``target = [γ_eff lo, γ_eff hi, 1 + k1 lo,
-    1 + k1 hi]`` (:mod:`cdqn.control.target`): ``1 + k1`` and ``γ_eff = (γ − k2)/(1 + k1)``
-    clipped to their ranges (``γ_eff`` taken at the range's centre where ``1 + k1 ≤ 0``)."""
+    1 + k1 hi, cap]`` (:mod:`cdqn.control.target`): ``1 + k1`` and ``γ_eff = (γ − k2)/(1 + k1)``
+    clipped to their ranges (``γ_eff`` taken at the range's centre where ``1 + k1 ≤ 0``).
+    With ``cap > 0`` and ``ρ = Θ2/Θ1 > 0`` (a scheduled controller), ``γ_eff`` is further
+    capped at ``cap/ρ``, so that ``γ_eff ρ ≤ cap < 1`` keeps the step's loop stable."""
     scale = 1.0 + k1
     g_eff = (g - k2) / scale if scale > 0.0 else 0.5 * (target[0] + target[1])
     s = min(max(scale, target[2]), target[3])
-    g_eff = min(max(g_eff, target[0]), target[1])
+    g_hi = target[1]
+    if target[4] > 0.0 and rho > 0.0:
+        g_hi = min(g_hi, target[4] / rho)
+    g_eff = min(max(g_eff, target[0]), g_hi)
     return s - 1.0, g - g_eff * s
 
 
@@ -109,8 +114,8 @@ def scheduled_lqr_step(theta1, theta2, g, w_x, wc, research, target, gains, x_e,
     if solved:
         if research:
             k1, k2, k3 = k3, -k2, k1
-        if target.shape[0] == 4:
-            k1, k2 = project_target(k1, k2, g, target)
+        if target.shape[0] == 5:
+            k1, k2 = project_target(k1, k2, g, target, theta2 / theta1 if theta1 > 0 else 0.0)
         gains[0], gains[1], gains[2] = k1, k2, k3
     else:
         k1, k2, k3 = gains[0], gains[1], gains[2]

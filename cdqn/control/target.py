@@ -21,7 +21,9 @@ agent learns the immediate reward only).  So they are design inputs (``weights.t
 Stability over the NTK box bounds what a target may ask: on the gradient-flow plant the fast
 mode of the static loop is ``(1 + k1) Θ1 (γ_eff ρ − 1)`` with ``ρ = Θ2/Θ1``, stable only where
 ``γ_eff ρ < 1``, i.e. ``γ_eff < 1/ρ_max`` for a positive effective discount
-(:func:`check_target`).
+(:func:`check_target`).  A gain-scheduled controller sees ρ at every step and can keep
+``γ_eff ρ ≤ c < 1`` pointwise (``weights.target.rho_cap = c``): the effective discount is then
+the target's where ρ is small and lower only where the step's loop would otherwise be unstable.
 """
 
 from __future__ import annotations
@@ -43,16 +45,33 @@ class TargetBox:
 
     gamma_eff: tuple[float, float]
     step_scale: tuple[float, float]
+    rho_cap: float | None = None
+    """Scheduled controllers (h2): cap γ_eff at ``rho_cap/ρ`` at each step (ρ = Θ2/Θ1)."""
 
     @classmethod
     def of(cls, cfg: Any) -> TargetBox:
         """From ``weights.target`` (a :class:`cdqn.config.LearningTarget` or a dict)."""
         get = cfg.get if isinstance(cfg, dict) else lambda k: getattr(cfg, k)
         g, s = get("gamma_eff"), get("step_scale")
-        return cls((float(g[0]), float(g[1])), (float(s[0]), float(s[1])))
+        cap = (
+            get("rho_cap")
+            if (isinstance(cfg, dict) and "rho_cap" in cfg) or hasattr(cfg, "rho_cap")
+            else None
+        )
+        return cls(
+            (float(g[0]), float(g[1])),
+            (float(s[0]), float(s[1])),
+            None if cap is None else float(cap),
+        )
 
-    def to_dict(self) -> dict[str, list[float]]:
-        return {"gamma_eff": list(self.gamma_eff), "step_scale": list(self.step_scale)}
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "gamma_eff": list(self.gamma_eff),
+            "step_scale": list(self.step_scale),
+        }
+        if self.rho_cap is not None:
+            out["rho_cap"] = self.rho_cap
+        return out
 
     def centre(self) -> tuple[float, float]:
         """(γ_eff, 1 + k1) at the centre of the box."""
@@ -71,13 +90,15 @@ class TargetBox:
         return d_s + d_g
 
     def array(self) -> np.ndarray:
-        """``[γ_eff lo, γ_eff hi, 1 + k1 lo, 1 + k1 hi]``, as the compiled kernels take it."""
-        return np.array([*self.gamma_eff, *self.step_scale], dtype=float)
+        """``[γ_eff lo, γ_eff hi, 1 + k1 lo, 1 + k1 hi, ρ cap (0: none)]``, as the compiled
+        kernels take it."""
+        cap = 0.0 if self.rho_cap is None else self.rho_cap
+        return np.array([*self.gamma_eff, *self.step_scale, cap], dtype=float)
 
     def project(self, k1: float, k2: float, discount: float) -> tuple[float, float]:
         """(k1, k2) moved into the box in the (γ_eff, 1 + k1) coordinates
         (:func:`cdqn.control.kernels.project_target`)."""
-        p1, p2 = project_target(float(k1), float(k2), float(discount), self.array())
+        p1, p2 = project_target(float(k1), float(k2), float(discount), self.array(), 0.0)
         return float(p1), float(p2)
 
     def gains(self, gamma_eff: float, step_scale: float, discount: float) -> tuple[float, float]:
@@ -116,10 +137,18 @@ def learning_target(K: ControllerMatrices, discount: float, box: NTKBox, lr: flo
     }
 
 
-def check_target(target: TargetBox, box: NTKBox) -> None:
+def check_target(target: TargetBox, box: NTKBox, scheduled: bool = False) -> None:
     """Refuse a target no controller can keep stable over the box (module docstring): the
-    whole γ_eff range at or above ``1/ρ_max``."""
+    whole γ_eff range at or above ``1/ρ_max`` (for a ``scheduled`` controller with a ρ cap,
+    a cap ≥ 1)."""
     rho_max = box.ratio[1]
+    if scheduled and target.rho_cap is not None:
+        if not 0.0 < target.rho_cap < 1.0:
+            raise DesignError(
+                f"weights.target.rho_cap={target.rho_cap}: need 0 < rho_cap < 1 (γ_eff·ρ is "
+                "capped there at every step; at 1 or above the step's loop is unstable)"
+            )
+        return
     if target.gamma_eff[0] * rho_max >= 1.0:
         raise DesignError(
             f"weights.target.gamma_eff={list(target.gamma_eff)} conflicts with the NTK box "
