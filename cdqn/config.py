@@ -37,6 +37,8 @@ class EnvConfig:
     """Episode cap in environment steps (None: the environment's own limit)."""
     obs_indices: list[int] | None = None
     """Observation features fed to the network (None: all)."""
+    normalize: bool = False
+    """Map every observation feature with finite bounds affinely to [−1, 1]."""
     solve_threshold: float | None = 195.0
     """Moving-average return (100 episodes) at which the task counts as solved."""
 

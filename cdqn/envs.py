@@ -25,6 +25,35 @@ class ObservationSubset(gym.ObservationWrapper):
         return observation[self.indices]
 
 
+class ObservationScale(gym.ObservationWrapper):
+    """Map each observation feature affinely from its ``[low, high]`` to ``[−1, 1]``
+    (``env.normalize``); features with an infinite bound are passed through unchanged.
+
+    A wide network's NTK compares inputs through ``x·y`` and its ReLU pattern: features on
+    very different scales (Mountain car's velocity is a hundredth of its position) leave
+    the kernel blind to the small ones, so every state looks alike to the learning update
+    (Θ2/Θ1 within 1 ± 0.007 on Mountain car)."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        space = env.observation_space
+        assert isinstance(space, Box)
+        low, high = space.low.astype(np.float64), space.high.astype(np.float64)
+        finite = np.isfinite(low) & np.isfinite(high) & (high > low)
+        self.offset = np.where(finite, 0.5 * (low + high), 0.0).astype(space.dtype)
+        self.scale = np.where(finite, 2.0 / np.where(finite, high - low, 1.0), 1.0).astype(
+            space.dtype
+        )
+        self.observation_space = Box(
+            np.where(finite, -1.0, low).astype(space.dtype),
+            np.where(finite, 1.0, high).astype(space.dtype),
+            dtype=space.dtype,
+        )
+
+    def observation(self, observation: np.ndarray) -> np.ndarray:
+        return (observation - self.offset) * self.scale
+
+
 def make_env(cfg: EnvConfig) -> gym.Env:
     """Build the environment of ``cfg``: gymnasium id, episode cap and feature subset."""
     if cfg.id not in gym.registry:
@@ -52,6 +81,8 @@ def make_env(cfg: EnvConfig) -> gym.Env:
                 f"[0, {space.shape[0]}) for {cfg.id}"
             )
         env = ObservationSubset(env, list(cfg.obs_indices))
+    if cfg.normalize:
+        env = ObservationScale(env)
     return env
 
 

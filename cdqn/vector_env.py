@@ -34,7 +34,7 @@ from gymnasium.envs.classic_control.mountain_car import MountainCarEnv
 from gymnasium.wrappers import OrderEnforcing, PassiveEnvChecker, TimeLimit
 from numba import njit
 
-from cdqn.envs import ObservationSubset
+from cdqn.envs import ObservationScale, ObservationSubset
 
 
 class VectorStep(NamedTuple):
@@ -62,18 +62,23 @@ class VectorEnv(Protocol):
         ...
 
 
-def _unwrap(env: gym.Env) -> tuple[gym.Env, np.ndarray | None, int | None, bool]:
-    """(base env, observation indices, step cap, whether every wrapper is a known no-op)."""
-    indices, cap, known = None, None, True
+def _unwrap(
+    env: gym.Env,
+) -> tuple[gym.Env, np.ndarray | None, int | None, bool, ObservationScale | None]:
+    """(base env, observation indices, step cap, whether every wrapper is a known no-op,
+    the observation scaling)."""
+    indices, cap, known, scaling = None, None, True, None
     while isinstance(env, gym.Wrapper):
         if isinstance(env, ObservationSubset):
             indices = env.indices
+        elif isinstance(env, ObservationScale):
+            scaling = env
         elif isinstance(env, TimeLimit):
             cap = env._max_episode_steps
         elif not isinstance(env, OrderEnforcing | PassiveEnvChecker):
             known = False
         env = env.env
-    return env, indices, cap, known
+    return env, indices, cap, known, scaling
 
 
 _PHYSICS = {
@@ -121,7 +126,7 @@ class ClassicControlTwin:
     def __init__(self, envs: list[gym.Env]) -> None:
         self.envs = list(envs)
         self.bases = [_unwrap(env)[0] for env in envs]
-        base, self.indices, cap, _ = _unwrap(envs[0])
+        base, self.indices, cap, _, self.scaling = _unwrap(envs[0])
         self.base = base
         self.cap = cap
         self.kind = type(base)
@@ -151,7 +156,7 @@ class ClassicControlTwin:
         """True when every member is a default-parameter instance of a supported kind."""
         bases = [_unwrap(env) for env in envs]
         base = bases[0][0]
-        if not all(known for *_, known in bases) or type(base) not in cls.KINDS:
+        if not all(b[3] for b in bases) or type(base) not in cls.KINDS:
             return False
         if any(type(b) is not type(base) or b.render_mode is not None for b, *_ in bases):
             return False
@@ -191,6 +196,8 @@ class ClassicControlTwin:
         _count_steps(self.elapsed, -1 if self.cap is None else self.cap, truncated)
         if self.indices is not None:
             obs = obs[:, self.indices]
+        if self.scaling is not None:  # as ObservationScale.observation does it
+            obs = (obs - self.scaling.offset) * self.scaling.scale
         return VectorStep(obs, reward, terminated, truncated)
 
 
