@@ -64,7 +64,7 @@ from cdqn.control.target import TargetBox, check_target, dc_gain, learning_targe
 from cdqn.control.uncertainty import CoverFit, fit_cover
 from cdqn.control.weights import SisoWeight
 
-DESIGN_VERSION = 3
+DESIGN_VERSION = 4
 """Bumped whenever the synthesis changes its results; part of the cache key."""
 KINDS = ("hinf", "hinf_f")
 """Controllers that are synthesised (h2 is solved per step)."""
