@@ -31,50 +31,45 @@ register_configs()
 
 
 def h2_report(conf: SynthesizeConfig, out: Path) -> str:
-    """The scheduled LQR over the box on ``controller.synthesis.plant``: gains at corners and
-    nominal, and its certificate (each point closed with its own gains, poles of the minimal
-    part of the loop)."""
-    from cdqn.control.certificate import ControllerMatrices, max_real_poles  # noqa: PLC0415
+    """The gain-scheduled H2 as training runs it (:func:`cdqn.control.factory.make_controller`:
+    LQR gains, gain map, learning target, certificate over the box), with its gains at the
+    box's corners and nominal point."""
     from cdqn.control.design import box_from_config  # noqa: PLC0415
-    from cdqn.control.h2 import h2_gains_plant  # noqa: PLC0415
-    from cdqn.control.plant import check_plant  # noqa: PLC0415
+    from cdqn.control.factory import make_controller  # noqa: PLC0415
+    from cdqn.control.h2 import scheduled_gains  # noqa: PLC0415
 
-    plant = check_plant(conf.controller.synthesis.plant)
+    setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
+    record = dict(setup.design)
     box = box_from_config(conf.weights.theta_bounds)
-    w_x, w_c = np.asarray(conf.weights.h2.w_x, float), float(conf.weights.h2.w_c)
-    discount = conf.train.discount
-    pts = np.vstack([box.grid(*conf.controller.synthesis.grid), box.corners()])
-    worst = -np.inf
-    for t1, t2 in pts:
-        K = ControllerMatrices.static(*h2_gains_plant(t1, t2, discount, w_x, w_c, plant))
-        worst = max(worst, float(max_real_poles(np.array([[t1, t2]]), discount, K, plant)[0]))
-    rows = {
-        f"({t1:.4g}, {t2:.4g})": list(h2_gains_plant(t1, t2, discount, w_x, w_c, plant))
-        for t1, t2 in np.vstack([box.corners(), [box.nominal]])
-    }
-    record = {
-        "kind": "h2",
-        "A": [],
-        "B": [],
-        "C": [],
-        "D": [],
-        "theta_bounds": {"theta1": list(box.theta1), "ratio": list(box.ratio)},
-        "discount": conf.train.discount,
-        "gamma": None,
-        "plant": plant,
-        "w_x": w_x.tolist(),
-        "w_c": w_c,
-        "gains_at": rows,
-        "worst_pole": worst,
+    ctrl = setup.controller
+    pts = np.vstack([box.corners(), [box.nominal]])
+    gains = scheduled_gains(pts, conf.train.discount, ctrl.w_x, ctrl.w_c, ctrl.research_map,
+                            ctrl.target)  # fmt: skip  # type: ignore[attr-defined]
+    record["gains_at"] = {
+        f"({t1:.4g}, {t2:.4g})": g.tolist() for (t1, t2), g in zip(pts, gains, strict=True)
     }
     out.mkdir(parents=True, exist_ok=True)
     (out / "controller.json").write_text(json.dumps(record, indent=2))
     lines = [
-        f"controller: h2 (gain-scheduled LQR, W_x = {w_x.tolist()}, W_c = {w_c:g}), "
-        f"learning plant: {plant}"
+        f"controller: h2 (gain-scheduled LQR, W_x = {record['w_x']}, W_c = {record['w_c']:g}, "
+        f"gain map {record['gain_map']})"
     ]
-    lines += [f"  (k1, k2, k3) at {k}: {[round(v, 6) for v in g]}" for k, g in rows.items()]
-    lines.append(f"worst closed-loop pole over the box (own gains): Re λ = {worst:.6g}")
+    lines += [
+        f"  (k1, k2, k3) at {k}: {[round(v, 6) for v in g]}" for k, g in record["gains_at"].items()
+    ]
+    lt = record.get("learning_target")
+    if lt:
+        lines.append(
+            f"learning target kept over the box: γ_eff ∈ [{lt['gamma_eff'][0]:.4g}, "
+            f"{lt['gamma_eff'][1]:.4g}], 1 + k1 ∈ [{lt['step_scale'][0]:.4g}, "
+            f"{lt['step_scale'][1]:.4g}] (target {lt['target']}); largest α(1 + k1)Θ1 = "
+            f"{lt['max_step_gain']:.4g}"
+        )
+        c = record["certificate"]
+        lines.append(
+            f"certificate (frozen at each point): PASSED on {c['n_points']} points; worst pole "
+            f"Re λ = {c['worst_pole']:.6g}; Δt = α loop max |λ| = {c['worst_discrete_modulus']:.9f}"
+        )
     return "\n".join(lines)
 
 
