@@ -82,8 +82,13 @@ def test_h2_report(tmp_path: Path) -> None:
     text = synthesize(_cfg(["env=acrobot", "controller=h2", f"out={tmp_path}"]))
     assert "gain-scheduled LQR" in text
     record = json.loads((tmp_path / "controller.json").read_text())
-    assert record["kind"] == "h2" and record["worst_pole"] < 0
-    assert record["plant"] == "gradient_flow"
+    assert record["kind"] == "h2" and record["certificate"]["passed"]
+    assert record["certificate"]["worst_pole"] < 0
+    assert record["certificate"]["plant"] == "gradient_flow"
+    assert "learning target kept over the box" in text
+    lo, hi = record["learning_target"]["gamma_eff"]
+    target = record["learning_target"]["target"]["gamma_eff"]
+    assert target[0] - 1e-9 <= lo <= hi <= target[1] + 1e-9
 
 
 def test_in_process_design_error(tmp_path: Path) -> None:
