@@ -64,7 +64,7 @@ from cdqn.control.target import TargetBox, check_target, dc_gain, learning_targe
 from cdqn.control.uncertainty import CoverFit, fit_cover
 from cdqn.control.weights import SisoWeight
 
-DESIGN_VERSION = 4
+DESIGN_VERSION = 7
 """Bumped whenever the synthesis changes its results; part of the cache key."""
 KINDS = ("hinf", "hinf_f")
 """Controllers that are synthesised (h2 is solved per step)."""
@@ -312,8 +312,9 @@ def _design_hinf(inputs: DesignInputs, samples: np.ndarray, cover: CoverFit) -> 
         if last is None:
             raise DesignError(
                 f"hinf design: with the learning target {inputs.target.to_dict()} (if any) no "
-                f"share λ in {list(DYNAMIC_SHARES)} of the synthesised dynamics leaves an "
-                "instantaneous gain that stabilises the box; widen weights.target or the box"
+                f"share λ in {list(DYNAMIC_SHARES)} of the synthesised dynamics (and of its "
+                f"integral gain, {list(INTEGRAL_SHARES)}) leaves an instantaneous gain that "
+                "stabilises the box; widen weights.target or narrow the box"
             )
         K, cert = last
     else:
@@ -361,8 +362,11 @@ def _design_hinf(inputs: DesignInputs, samples: np.ndarray, cover: CoverFit) -> 
     )
 
 
-DYNAMIC_SHARES = (1.0, 0.5, 0.25, 0.1, 0.05, 0.02, 0.01, 0.005, 0.002, 0.001)
-"""Shares λ of the synthesised dynamics tried, largest first (:func:`_dc_on_target`)."""
+DYNAMIC_SHARES = (1.0, 0.5, 0.25, 0.1, 0.05, 0.02, 0.01, 0.005, 0.002, 0.001, 1e-4, 0.0)
+"""Shares λ of the synthesised dynamics tried, largest first (:func:`_dc_on_target`); at 0
+the controller is the static gain of the target's centre with the synthesised integral gain."""
+INTEGRAL_SHARES = (1.0, 0.1, 0.01, 0.001)
+"""Shares of the synthesised DC integral gain tried, largest first (:func:`_dc_on_target`)."""
 
 
 def _dc_on_target(
@@ -372,11 +376,12 @@ def _dc_on_target(
 
     .. math::  K_\lambda(s) = K_t + \lambda\,(K(s) - K(0)),
 
-    with ``K_t`` the static gain of the target point nearest to ``K(0)``: its DC gain is
-    ``K_t`` exactly, and ``λ`` scales the synthesised dynamics around it (``A`` and ``B``
-    unchanged, ``C_λ = λC``, ``D_λ = K_t + λ(D − K(0))``).  A training step applies the
-    controller's instantaneous gain ``K_λ(∞) = D_λ`` while Θ1, Θ2 change from step to step, so
-    a candidate is kept only when ``D_λ`` keeps the learning target too and is itself a
+    with ``K_t`` the static gain of the target's centre (its integral gain on ``x_e``, which
+    the target leaves free, ``K(0)``'s scaled by a share in :data:`INTEGRAL_SHARES`, largest
+    first): its DC gain is ``K_t`` exactly, and ``λ`` scales the synthesised dynamics around
+    it (``A`` and ``B`` unchanged, ``C_λ = λC``, ``D_λ = K_t + λ(D − K(0))``).  A training step
+    applies the controller's instantaneous gain ``K_λ(∞) = D_λ`` while Θ1, Θ2 change from step
+    to step, so a candidate is kept only when ``D_λ`` keeps the learning target too and is itself a
     stabilising static gain over the box (continuous time and at Δt = α), besides the
     certificate of ``K_λ``; λ runs over :data:`DYNAMIC_SHARES`.  (Measured: with only the DC
     gain on target, the CartPole designs' instantaneous gains had 1 + k1 < 0 or γ_eff ≈ −13
@@ -390,13 +395,14 @@ def _dc_on_target(
             "hinf design: the controller has an integrator (singular A), so its DC gain cannot "
             f"be placed in the learning target {inputs.target.to_dict()}"
         )
-    k1, k2 = inputs.target.project(-dc[1], -dc[2], inputs.discount)
-    K_t = np.array([dc[0], -k1, -k2])
+    k1, k2 = inputs.target.gains(*inputs.target.centre(), inputs.discount)
     D = np.asarray(K.D, float).reshape(3)
     out = []
-    for lam in DYNAMIC_SHARES:
-        D_lam = (K_t + lam * (D - dc)).reshape(1, 3)
-        out.append((ControllerMatrices(K.A, K.B, lam * K.C, D_lam), lam))
+    for integral in INTEGRAL_SHARES:
+        K_t = np.array([integral * dc[0], -k1, -k2])
+        for lam in DYNAMIC_SHARES:
+            D_lam = (K_t + lam * (D - dc)).reshape(1, 3)
+            out.append((ControllerMatrices(K.A, K.B, lam * K.C, D_lam), lam))
     return out
 
 
