@@ -97,3 +97,38 @@ def test_a_target_the_box_cannot_hold_is_refused_by_name(kind: str) -> None:
     conf = _conf(kind, ["weights.target.gamma_eff=[0.9,0.99]", "controller.synthesis.cache=false"])
     with pytest.raises(DesignError, match=r"weights\.target\.gamma_eff=\[0\.9, 0\.99\]"):
         make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
+
+
+def test_dynamic_design_instantaneous_gain_keeps_the_target(tmp_path: Path) -> None:
+    """A step applies the controller's D while Θ changes every step: D keeps the target too."""
+    conf = _conf("hinf", [])
+    inputs = design_inputs(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
+    record, _, _ = load_or_design(inputs, tmp_path)
+    k3, mk1, mk2 = np.asarray(record["D"], float).reshape(3)
+    assert _inside(-mk1, -mk2)
+    assert 0.0 <= record["details"]["dynamic_share"] <= 1.0
+
+
+def test_scheduled_h2_rho_cap_lowers_the_discount_only_where_the_ratio_is_large() -> None:
+    """Acrobot's raw-observation box (Θ2/Θ1 up to 1.5) cannot hold γ_eff = 0.99 with static
+    gains; the scheduled H2 caps γ_eff·ρ at 0.98 step by step and is certified."""
+    extra = [
+        "weights.target.gamma_eff=[0.99,0.99]",
+        "weights.target.step_scale=[0.2,0.2]",
+        "weights.theta_bounds.theta1=[200.0,3200.0]",
+        "weights.theta_bounds.ratio=[0.55,1.5]",
+    ]
+    conf = OmegaConf.to_object(compose_config(["env=acrobot", "controller=h2", *FAST, *extra]))
+    with pytest.raises(DesignError, match="weights.target.gamma_eff"):
+        make_controller(conf.controller, conf.weights, 1.0, 5e-5)
+    conf.weights.target.rho_cap = 0.98
+    setup = make_controller(conf.controller, conf.weights, 1.0, 5e-5)
+    assert setup.design["certificate"]["passed"]
+    box = box_from_config(conf.weights.theta_bounds)
+    pts = box.grid(9, 9)
+    gains = scheduled_gains(pts, 1.0, np.asarray(conf.weights.h2.w_x), conf.weights.h2.w_c,
+                            True, TargetBox.of(conf.weights.target).array())  # fmt: skip
+    g_eff = (1.0 - gains[:, 1]) / (1.0 + gains[:, 0])
+    rho = pts[:, 1] / pts[:, 0]
+    assert np.all(g_eff * rho <= 0.98 + 1e-9)
+    assert np.allclose(g_eff[rho <= 0.98 / 0.99], 0.99)
