@@ -8,4 +8,29 @@ a control reward ``u(t)`` into the temporal-difference loss so that learning con
 without a target network or random replay.
 """
 
+import hashlib
+import os
+from pathlib import Path
+
 __version__ = "0.1.0"
+
+
+def _numba_cache_dir() -> str:
+    """A numba cache folder per version of cdqn's sources.
+
+    numba's on-disk cache (``@njit(cache=True)``) is invalidated by a change of the function's
+    own source file only, not of the compiled functions it calls from other modules (a
+    population kernel inlines the controller and network row functions): after such a change
+    it would load stale machine code.  Keying the cache folder by a hash of every source file
+    makes any change of cdqn start a fresh cache.  ``NUMBA_CACHE_DIR`` set by the user wins.
+    """
+    root = Path(__file__).resolve().parent
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        digest.update(path.relative_to(root).as_posix().encode())
+        digest.update(path.read_bytes())
+    base = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "cdqn" / "numba"
+    return str(base / digest.hexdigest()[:16])
+
+
+os.environ.setdefault("NUMBA_CACHE_DIR", _numba_cache_dir())
