@@ -109,14 +109,23 @@ def restore(
 class CheckpointStore:
     """Writes and reads the checkpoints of one MLflow run."""
 
-    def __init__(self, client: MlflowClient, run_id: str, store_signals: bool = True) -> None:
+    def __init__(
+        self,
+        client: MlflowClient,
+        run_id: str,
+        store_signals: bool = True,
+        kind: type = Checkpoint,
+    ) -> None:
         self.client = client
         self.run_id = run_id
         self.store_signals = store_signals
+        self.kind = kind
+        """The checkpoint dataclass stored (:class:`Checkpoint`; a population member's:
+        :class:`cdqn.population_checkpoint.MemberCheckpoint`, ordered by ``sequence``)."""
         self._next_slot = 0
         self._rows_saved = 0
 
-    def save(self, ckpt: Checkpoint, signals: SignalBuffer) -> None:
+    def save(self, ckpt: Any, signals: SignalBuffer) -> None:
         """Write the signal rows not yet stored, then the state into the older slot."""
         with tempfile.TemporaryDirectory() as tmp:
             if self.store_signals and ckpt.signal_rows > self._rows_saved:
@@ -134,7 +143,15 @@ class CheckpointStore:
 
     def load(self) -> Checkpoint | None:
         """The latest complete checkpoint of the run, or None when it has none."""
-        candidates: list[tuple[Checkpoint, int]] = []
+        for ckpt, slot in self.candidates():
+            if self.complete(ckpt, slot):
+                return ckpt
+        return None
+
+    def candidates(self) -> list[tuple[Any, int]]:
+        """The readable checkpoints in the slots (without signal rows) and their slot
+        indices, newest first."""
+        found: list[tuple[Any, int]] = []
         with tempfile.TemporaryDirectory() as tmp:
             for i, slot in enumerate(SLOTS):
                 try:
@@ -145,22 +162,26 @@ class CheckpointStore:
                     if data.get("format") != FORMAT:
                         raise ValueError(f"format {data.get('format')}, expected {FORMAT}")
                     del data["format"]
-                    candidates.append((Checkpoint(**data), i))
+                    found.append((self.kind(**data), i))
                 except Exception as err:  # missing slot or a write cut short by a hard kill
                     log.debug("checkpoint slot %s unusable: %s", slot, err)
-            for ckpt, i in sorted(candidates, key=lambda c: -c[0].episode):
-                try:
-                    if self.store_signals and ckpt.signal_rows > 0:
-                        ckpt.signals = self._load_signals(ckpt.signal_rows, Path(tmp))
-                    else:
-                        ckpt.signal_rows = 0
-                except Exception as err:
-                    log.warning("checkpoint at episode %d unusable: %s", ckpt.episode, err)
-                    continue
-                self._next_slot = 1 - i
-                self._rows_saved = ckpt.signal_rows
-                return ckpt
-        return None
+        return sorted(found, key=lambda c: -getattr(c[0], "sequence", c[0].episode))
+
+    def complete(self, ckpt: Any, slot: int) -> bool:
+        """Fill in the signal rows of ``ckpt`` (read from ``slot``) and continue writing
+        after it; False when its rows cannot be read."""
+        with tempfile.TemporaryDirectory() as tmp:
+            try:
+                if self.store_signals and ckpt.signal_rows > 0:
+                    ckpt.signals = self._load_signals(ckpt.signal_rows, Path(tmp))
+                else:
+                    ckpt.signal_rows = 0
+            except Exception as err:
+                log.warning("checkpoint at episode %d unusable: %s", ckpt.episode, err)
+                return False
+        self._next_slot = 1 - slot
+        self._rows_saved = ckpt.signal_rows
+        return True
 
     def _load_signals(self, rows: int, tmp: Path) -> np.ndarray:
         """Rows ``[0, rows)`` from the chunks (a chain of chunks ending exactly at ``rows``)."""
@@ -183,7 +204,7 @@ class CheckpointStore:
         return np.concatenate(parts)
 
 
-def _fields(ckpt: Checkpoint) -> dict[str, Any]:
+def _fields(ckpt: Any) -> dict[str, Any]:
     data = {k: v for k, v in vars(ckpt).items() if k != "signals"}
     data["format"] = FORMAT
     return data

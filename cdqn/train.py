@@ -13,6 +13,7 @@ when SIGINT/SIGTERM stopped the run (KILLED, resumable).
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 import os
@@ -29,7 +30,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 from omegaconf.errors import OmegaConfBaseException
 
 from cdqn.agents import Agent, make_agent
@@ -49,9 +50,16 @@ from cdqn.envs import env_sizes, make_env
 from cdqn.interrupt import GracefulStop
 from cdqn.network import NetworkSpec, QNetwork, save_network
 from cdqn.ntk_bounds import measured_box
-from cdqn.population import run_population
+from cdqn.population import resume_population, run_population
+from cdqn.population_checkpoint import population_runs
 from cdqn.signals import SignalBuffer
-from cdqn.sweep import config_hash, ensure_store, finished_elsewhere
+from cdqn.sweep import (
+    config_hash,
+    ensure_store,
+    finished_elsewhere,
+    process_tags,
+    resumable_elsewhere,
+)
 from cdqn.tracking import (
     CONFIG_ARTIFACT,
     Recorder,
@@ -123,6 +131,9 @@ def run(cfg: DictConfig, progress: bool = True) -> RunResult:
             if conf.tracking.skip_finished and (done := finished_elsewhere(cfg, uri)) is not None:
                 env.close()
                 return RunResult(done[0], "FINISHED", done[1], "skipped: already FINISHED")
+            if conf.tracking.skip_finished and (killed := resumable_elsewhere(cfg, uri)):
+                env.close()
+                return _continue(cfg, killed, uri, progress)
         check_tracking(uri, conf.tracking.timeout)
         job = build(conf, env)
     except BaseException:
@@ -139,6 +150,7 @@ def run(cfg: DictConfig, progress: bool = True) -> RunResult:
         "git_commit": git_commit(),
         "design_source": job.setup.source,
         "config_hash": config_hash(cfg),
+        **process_tags(),
     }
     try:
         recorder = Recorder.start(
@@ -190,6 +202,9 @@ def resume(cfg: DictConfig, progress: bool = True) -> RunResult:
             f"resume={run_id}: the run FAILED because it {reason}; with the same seed it would "
             "diverge again (start a new run with other settings)"
         )
+    if "population_id" in info.data.tags:  # a member: continue its whole population
+        runs = population_runs(client, info)
+        return resume_population(uri, cfg.tracking, runs, progress).summary()
     if status == "RUNNING":
         log.warning(
             "run %s is marked RUNNING (its process ended without closing it, e.g. SIGKILL); "
@@ -236,12 +251,24 @@ def resume(cfg: DictConfig, progress: bool = True) -> RunResult:
         {
             "resumed_from_episode": str(state.episode),
             "resume_count": str(int(info.data.tags.get("resume_count", "0")) + 1),
+            **process_tags(),
         }
     )
     if reason:
         recorder.set_tags({"previous_failure_reason": reason})
         client.delete_tag(run_id, "failure_reason")
     return _train(job, recorder, store, state, signals, progress, recorder.logged_episodes())
+
+
+def _continue(cfg: DictConfig, run_id: str, uri: str, progress: bool) -> RunResult:
+    """A restarted sweep's job whose run was KILLED (or left RUNNING by a process that is
+    gone): continue that run from its checkpoint (:func:`resume`)."""
+    log.info("continuing run %s of this configuration from its last checkpoint", run_id)
+    again = copy.deepcopy(cfg)
+    with read_write(again), open_dict(again):
+        again.resume = run_id
+        again.tracking.uri = uri
+    return resume(again, progress)
 
 
 def _train(
