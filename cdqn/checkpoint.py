@@ -30,6 +30,7 @@ from mlflow.tracking import MlflowClient
 
 from cdqn.agents.base import Agent
 from cdqn.signals import COLUMNS, SignalBuffer
+from cdqn.tracking import retrying
 from cdqn.trainer import TrainState
 
 log = logging.getLogger("cdqn")
@@ -122,6 +123,8 @@ class CheckpointStore:
         self.kind = kind
         """The checkpoint dataclass stored (:class:`Checkpoint`; a population member's:
         :class:`cdqn.population_checkpoint.MemberCheckpoint`, ordered by ``sequence``)."""
+        self.retry_s = 0.0
+        """Seconds a write is retried while the store does not answer."""
         self._next_slot = 0
         self._rows_saved = 0
 
@@ -132,14 +135,24 @@ class CheckpointStore:
                 start, stop = self._rows_saved, ckpt.signal_rows
                 chunk = Path(tmp) / f"rows-{start:010d}-{stop:010d}.npy"
                 np.save(chunk, signals.rows(start, stop))
-                self.client.log_artifact(self.run_id, str(chunk), f"{ROOT}/signals")
+                self._log(chunk, f"{ROOT}/signals")
                 self._rows_saved = stop
             path = Path(tmp) / "state.pt"
             torch.save(_encode(_fields(ckpt)), path)
             slot = SLOTS[self._next_slot]
-            self.client.log_artifact(self.run_id, str(path), f"{ROOT}/slot-{slot}")
+            self._log(path, f"{ROOT}/slot-{slot}")
         self._next_slot = 1 - self._next_slot
         log.info("checkpoint at episode %d (slot %s)", ckpt.episode, slot)
+
+    def _log(self, path: Path, artifact_path: str) -> None:
+        """One artifact, retried while the store does not answer (``retry_s``)."""
+        uri = str(getattr(self.client, "_tracking_client", self.client).tracking_uri)
+        retrying(
+            lambda: self.client.log_artifact(self.run_id, str(path), artifact_path),
+            f"checkpoint {artifact_path} of run {self.run_id}",
+            self.retry_s,
+            uri,
+        )
 
     def load(self) -> Checkpoint | None:
         """The latest complete checkpoint of the run, or None when it has none."""
@@ -202,6 +215,52 @@ class CheckpointStore:
             parts.append(part)
             pos = stop
         return np.concatenate(parts)
+
+
+LOCAL_FILE = "state.pt"
+
+
+def local_path(folder: str | Path, run_id: str) -> Path:
+    """Where the local checkpoint of ``run_id`` lives: ``<folder>/<run_id>/state.pt``."""
+    return Path(folder).resolve() / run_id / LOCAL_FILE
+
+
+def save_local(
+    folder: str | Path,
+    run_id: str,
+    ckpt: Checkpoint,
+    signals: SignalBuffer,
+    pending: list[tuple[str, float, int, int]],
+) -> Path:
+    """Write ``ckpt`` with all its signal rows and the metrics not yet in the store
+    (``pending``) to :func:`local_path`, for a run whose tracking store went away."""
+    path = local_path(folder, run_id)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data = _fields(ckpt)
+    data["local_signals"] = signals.rows(0, ckpt.signal_rows).copy()
+    data["pending"] = [list(p) for p in pending]
+    tmp = path.with_suffix(".tmp")
+    torch.save(_encode(data), tmp)
+    tmp.replace(path)  # a kill while writing leaves the previous file intact
+    return path
+
+
+def load_local(
+    folder: str | Path, run_id: str
+) -> tuple[Checkpoint, list[tuple[str, float, int, int]]] | None:
+    """The local checkpoint of ``run_id`` and its pending metrics, or None."""
+    path = local_path(folder, run_id)
+    if not path.is_file():
+        return None
+    data = _decode(torch.load(path, weights_only=True))
+    if data.pop("format", None) != FORMAT:
+        log.warning("%s: not a checkpoint of this version of cdqn; ignored", path)
+        return None
+    rows = data.pop("local_signals")
+    pending = [(str(k), float(v), int(ts), int(st)) for k, v, ts, st in data.pop("pending")]
+    ckpt = Checkpoint(**data)
+    ckpt.signals = rows if ckpt.signal_rows > 0 else None
+    return ckpt, pending
 
 
 def _fields(ckpt: Any) -> dict[str, Any]:

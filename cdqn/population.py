@@ -69,7 +69,7 @@ from cdqn.sweep import (
     find_resumable,
     process_tags,
 )
-from cdqn.tracking import Recorder, check_tracking, flatten, git_commit
+from cdqn.tracking import Recorder, TrackingOutage, check_tracking, flatten, git_commit
 from cdqn.trainer import DivergenceError, _diagnose, episode_stats
 from cdqn.vector_env import VectorEnv, make_vector_env
 
@@ -414,6 +414,9 @@ def train_members(
         if m.recorder is not None
     }
     counter = [sequence]
+    for m in members:  # writes retried while the store does not answer (tracking.retry_s)
+        if m.recorder is not None:
+            m.recorder.retry_s = stores[m.seed].retry_s = conf.tracking.retry_s
 
     def on_checkpoint(
         items: list[tuple[int, Member]], obs: np.ndarray, t: np.ndarray, ret: np.ndarray
@@ -478,6 +481,15 @@ def train_members(
                 on_checkpoint=on_checkpoint if venv.checkpointable else None,
                 checkpoint_every=conf.train.checkpoint_every,
             )
+        except TrackingOutage as err:  # runs cannot be closed; the store has the checkpoints
+            open_ids = [m.recorder.run_id for m in members
+                        if m.seed not in results and m.recorder is not None]  # fmt: skip
+            log.error(
+                "%s. The members %s stay RUNNING in the store; when the server answers again, "
+                "resume=<any of them> (or the restarted sweep) continues them from their last "
+                "checkpoint", err, ", ".join(open_ids),
+            )  # fmt: skip
+            raise
         except BaseException as err:  # close the members' runs that are still open
             stop.closing()
             for m in members:

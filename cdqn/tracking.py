@@ -219,9 +219,13 @@ class Recorder:
         self._pending: list[Metric] = []
         self._last_flush = time.monotonic()
 
+    @property
+    def uri(self) -> str:
+        """The tracking URI the run is written to."""
+        return str(self.client._tracking_client.tracking_uri)
+
     def _retry(self, call: Callable[[], T], what: str) -> T:
-        uri = str(getattr(self.client, "_tracking_client", self.client).tracking_uri)
-        return retrying(call, f"{what} of run {self.run_id}", self.retry_s, uri)
+        return retrying(call, f"{what} of run {self.run_id}", self.retry_s, self.uri)
 
     @property
     def pending(self) -> list[tuple[str, float, int, int]]:
