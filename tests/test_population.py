@@ -235,6 +235,7 @@ def test_population_member_is_recorded_as_its_single_run(tracking_uri: str) -> N
         tags_a = {k: v for k, v in ra.tags.items() if not k.startswith("mlflow.")}
         tags_b = {k: v for k, v in rb.tags.items() if not k.startswith("mlflow.")}
         assert tags_b.pop("population") == "3-4"
+        assert len(tags_b.pop("population_id")) == 32  # what resume= finds the members by
         assert tags_a == tags_b
         assert _artifacts(client, single.run_id) == _artifacts(client, member.run_id)
         assert single.final_score == member.final_score
