@@ -446,6 +446,11 @@ def main(cfg: DictConfig) -> float:
         if not multirun:
             sys.exit(2)
         return float("nan")
+    except TrackingOutage as err:  # a population's store went away (its runs stay RUNNING)
+        record_job(OUTAGE, reason=str(err))
+        if not multirun:
+            sys.exit(EXIT_OUTAGE)
+        return float("nan")
     except KeyboardInterrupt:
         log.error("interrupted")
         sys.exit(130)
