@@ -203,6 +203,7 @@ def _member_runs(client: MlflowClient, run_ids: list[str]) -> dict[str, str]:
     return {client.get_run(r).data.tags["seed"]: r for r in run_ids}
 
 
+@pytest.mark.slow
 def test_sigterm_to_population_process_then_resume_equals_uninterrupted(tmp_path: Path) -> None:
     """A real population process gets SIGTERM after its first checkpoint; every member is
     closed KILLED with the resume command; ``resume=<one member>`` continues all of them, and

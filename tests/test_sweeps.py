@@ -199,6 +199,7 @@ def _has_checkpoint(run: object) -> bool:
     return (root / "checkpoint" / "slot-a" / "state.pt").exists()
 
 
+@pytest.mark.slow
 def test_a_killed_sweep_started_again_continues_its_runs(tmp_path: Path) -> None:
     """A real sweep (joblib launcher, two jobs in parallel: an H∞ population and Double DQN
     seeds) gets SIGKILL in its whole process group once runs of both jobs have checkpoints;
