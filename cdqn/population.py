@@ -69,7 +69,14 @@ from cdqn.sweep import (
     find_resumable,
     process_tags,
 )
-from cdqn.tracking import Recorder, TrackingOutage, check_tracking, flatten, git_commit
+from cdqn.tracking import (
+    Recorder,
+    TrackingOutage,
+    check_tracking,
+    fail_fast_http,
+    flatten,
+    git_commit,
+)
 from cdqn.trainer import DivergenceError, _diagnose, episode_stats
 from cdqn.vector_env import VectorEnv, make_vector_env
 
@@ -417,6 +424,8 @@ def train_members(
     for m in members:  # writes retried while the store does not answer (tracking.retry_s)
         if m.recorder is not None:
             m.recorder.retry_s = stores[m.seed].retry_s = conf.tracking.retry_s
+            if m.recorder.uri.startswith(("http://", "https://")):
+                fail_fast_http(conf.tracking.timeout)
 
     def on_checkpoint(
         items: list[tuple[int, Member]], obs: np.ndarray, t: np.ndarray, ret: np.ndarray
