@@ -163,10 +163,13 @@ def _time_limit(env: gym.Env) -> TimeLimit | None:
 
 
 def _mark_reset(env: gym.Env) -> None:
-    """Let a restored environment step without a reset (``OrderEnforcing``)."""
+    """Let a restored environment step without a reset (``OrderEnforcing``; the passive
+    checker's first-step checks, which compare with the reset's data, are skipped)."""
     while isinstance(env, gym.Wrapper):
         if isinstance(env, OrderEnforcing):
             env._has_reset = True
+        if isinstance(env, PassiveEnvChecker):
+            env.checked_step = env.checked_data_reuse = True
         env = env.env
 
 

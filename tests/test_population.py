@@ -260,3 +260,31 @@ def test_double_dqn_population_trains_its_seeds_one_after_another(tracking_uri: 
     assert seeds == ["5", "6"] and member_seeds(5, 2) == [5, 6]
     assert {r.status for r in result.members} == {"FINISHED"}
     assert result.summary().status == "FINISHED"
+
+
+@pytest.mark.parametrize("twin", [True, False], ids=["twin", "gym-loop"])
+def test_environment_state_between_two_steps_round_trips(twin: bool) -> None:
+    """A member's environment captured mid-episode (``state_dict``) and loaded into freshly
+    made environments continues with the same observations, rewards and resets."""
+    cfg = ENVS["CartPole-v1"]
+
+    def make() -> object:
+        envs = [make_env(cfg) for _ in range(2)]
+        return ClassicControlTwin(envs) if twin else GymLoop(envs)
+
+    venv, copy_ = make(), make()
+    assert venv.checkpointable
+    for i in range(2):
+        venv.reset(i, 20 + i)
+    gen = np.random.default_rng(1)
+    for _ in range(7):
+        venv.step(gen.integers(2, size=2))
+    for i in range(2):
+        copy_.load_state_dict(i, venv.state_dict(i))
+    for _ in range(400):
+        actions = gen.integers(2, size=2)
+        a, b = venv.step(actions), copy_.step(actions)
+        for x, y in zip(a, b, strict=True):
+            assert np.array_equal(x, y)
+        for i in np.flatnonzero(a.terminated | a.truncated):
+            assert np.array_equal(venv.reset(i, None), copy_.reset(i, None))
