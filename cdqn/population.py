@@ -613,9 +613,15 @@ def resume_population(uri: str, tracking: object, runs: list, progress: bool) ->
 
 
 def start_member_run(
-    m: Member, conf: Config, setup: ControllerSetup, uri: str, population: str, population_id: str
+    m: Member,
+    conf: Config,
+    setup: ControllerSetup,
+    uri: str,
+    population: str,
+    population_id: str | None = None,
 ) -> Recorder:
-    """Open member ``m``'s MLflow run with the params, tags and artifacts of a single run."""
+    """Open member ``m``'s MLflow run with the params, tags and artifacts of a single run;
+    tag ``population_id`` names the population (what ``resume=`` finds its members by)."""
     container = OmegaConf.to_container(m.cfg, resolve=True)
     tags = {
         "env": conf.env.name,
@@ -626,7 +632,7 @@ def start_member_run(
         "design_source": setup.source,
         "config_hash": config_hash(m.cfg),
         "population": population,
-        "population_id": population_id,
+        "population_id": population_id or uuid.uuid4().hex,
         **process_tags(),
     }
     rec = Recorder.start(
