@@ -30,6 +30,7 @@ from mlflow.tracking import MlflowClient
 
 from cdqn.agents.base import Agent
 from cdqn.signals import COLUMNS, SignalBuffer
+from cdqn.tracking import retrying
 from cdqn.trainer import TrainState
 
 log = logging.getLogger("cdqn")
@@ -109,32 +110,61 @@ def restore(
 class CheckpointStore:
     """Writes and reads the checkpoints of one MLflow run."""
 
-    def __init__(self, client: MlflowClient, run_id: str, store_signals: bool = True) -> None:
+    def __init__(
+        self,
+        client: MlflowClient,
+        run_id: str,
+        store_signals: bool = True,
+        kind: type = Checkpoint,
+    ) -> None:
         self.client = client
         self.run_id = run_id
         self.store_signals = store_signals
+        self.kind = kind
+        """The checkpoint dataclass stored (:class:`Checkpoint`; a population member's:
+        :class:`cdqn.population_checkpoint.MemberCheckpoint`, ordered by ``sequence``)."""
+        self.retry_s = 0.0
+        """Seconds a write is retried while the store does not answer."""
         self._next_slot = 0
         self._rows_saved = 0
 
-    def save(self, ckpt: Checkpoint, signals: SignalBuffer) -> None:
+    def save(self, ckpt: Any, signals: SignalBuffer) -> None:
         """Write the signal rows not yet stored, then the state into the older slot."""
         with tempfile.TemporaryDirectory() as tmp:
             if self.store_signals and ckpt.signal_rows > self._rows_saved:
                 start, stop = self._rows_saved, ckpt.signal_rows
                 chunk = Path(tmp) / f"rows-{start:010d}-{stop:010d}.npy"
                 np.save(chunk, signals.rows(start, stop))
-                self.client.log_artifact(self.run_id, str(chunk), f"{ROOT}/signals")
+                self._log(chunk, f"{ROOT}/signals")
                 self._rows_saved = stop
             path = Path(tmp) / "state.pt"
             torch.save(_encode(_fields(ckpt)), path)
             slot = SLOTS[self._next_slot]
-            self.client.log_artifact(self.run_id, str(path), f"{ROOT}/slot-{slot}")
+            self._log(path, f"{ROOT}/slot-{slot}")
         self._next_slot = 1 - self._next_slot
         log.info("checkpoint at episode %d (slot %s)", ckpt.episode, slot)
 
+    def _log(self, path: Path, artifact_path: str) -> None:
+        """One artifact, retried while the store does not answer (``retry_s``)."""
+        uri = str(getattr(self.client, "_tracking_client", self.client).tracking_uri)
+        retrying(
+            lambda: self.client.log_artifact(self.run_id, str(path), artifact_path),
+            f"checkpoint {artifact_path} of run {self.run_id}",
+            self.retry_s,
+            uri,
+        )
+
     def load(self) -> Checkpoint | None:
         """The latest complete checkpoint of the run, or None when it has none."""
-        candidates: list[tuple[Checkpoint, int]] = []
+        for ckpt, slot in self.candidates():
+            if self.complete(ckpt, slot):
+                return ckpt
+        return None
+
+    def candidates(self) -> list[tuple[Any, int]]:
+        """The readable checkpoints in the slots (without signal rows) and their slot
+        indices, newest first."""
+        found: list[tuple[Any, int]] = []
         with tempfile.TemporaryDirectory() as tmp:
             for i, slot in enumerate(SLOTS):
                 try:
@@ -145,22 +175,26 @@ class CheckpointStore:
                     if data.get("format") != FORMAT:
                         raise ValueError(f"format {data.get('format')}, expected {FORMAT}")
                     del data["format"]
-                    candidates.append((Checkpoint(**data), i))
+                    found.append((self.kind(**data), i))
                 except Exception as err:  # missing slot or a write cut short by a hard kill
                     log.debug("checkpoint slot %s unusable: %s", slot, err)
-            for ckpt, i in sorted(candidates, key=lambda c: -c[0].episode):
-                try:
-                    if self.store_signals and ckpt.signal_rows > 0:
-                        ckpt.signals = self._load_signals(ckpt.signal_rows, Path(tmp))
-                    else:
-                        ckpt.signal_rows = 0
-                except Exception as err:
-                    log.warning("checkpoint at episode %d unusable: %s", ckpt.episode, err)
-                    continue
-                self._next_slot = 1 - i
-                self._rows_saved = ckpt.signal_rows
-                return ckpt
-        return None
+        return sorted(found, key=lambda c: -getattr(c[0], "sequence", c[0].episode))
+
+    def complete(self, ckpt: Any, slot: int) -> bool:
+        """Fill in the signal rows of ``ckpt`` (read from ``slot``) and continue writing
+        after it; False when its rows cannot be read."""
+        with tempfile.TemporaryDirectory() as tmp:
+            try:
+                if self.store_signals and ckpt.signal_rows > 0:
+                    ckpt.signals = self._load_signals(ckpt.signal_rows, Path(tmp))
+                else:
+                    ckpt.signal_rows = 0
+            except Exception as err:
+                log.warning("checkpoint at episode %d unusable: %s", ckpt.episode, err)
+                return False
+        self._next_slot = 1 - slot
+        self._rows_saved = ckpt.signal_rows
+        return True
 
     def _load_signals(self, rows: int, tmp: Path) -> np.ndarray:
         """Rows ``[0, rows)`` from the chunks (a chain of chunks ending exactly at ``rows``)."""
@@ -183,7 +217,53 @@ class CheckpointStore:
         return np.concatenate(parts)
 
 
-def _fields(ckpt: Checkpoint) -> dict[str, Any]:
+LOCAL_FILE = "state.pt"
+
+
+def local_path(folder: str | Path, run_id: str) -> Path:
+    """Where the local checkpoint of ``run_id`` lives: ``<folder>/<run_id>/state.pt``."""
+    return Path(folder).resolve() / run_id / LOCAL_FILE
+
+
+def save_local(
+    folder: str | Path,
+    run_id: str,
+    ckpt: Checkpoint,
+    signals: SignalBuffer,
+    pending: list[tuple[str, float, int, int]],
+) -> Path:
+    """Write ``ckpt`` with all its signal rows and the metrics not yet in the store
+    (``pending``) to :func:`local_path`, for a run whose tracking store went away."""
+    path = local_path(folder, run_id)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data = _fields(ckpt)
+    data["local_signals"] = signals.rows(0, ckpt.signal_rows).copy()
+    data["pending"] = [list(p) for p in pending]
+    tmp = path.with_suffix(".tmp")
+    torch.save(_encode(data), tmp)
+    tmp.replace(path)  # a kill while writing leaves the previous file intact
+    return path
+
+
+def load_local(
+    folder: str | Path, run_id: str
+) -> tuple[Checkpoint, list[tuple[str, float, int, int]]] | None:
+    """The local checkpoint of ``run_id`` and its pending metrics, or None."""
+    path = local_path(folder, run_id)
+    if not path.is_file():
+        return None
+    data = _decode(torch.load(path, weights_only=True))
+    if data.pop("format", None) != FORMAT:
+        log.warning("%s: not a checkpoint of this version of cdqn; ignored", path)
+        return None
+    rows = data.pop("local_signals")
+    pending = [(str(k), float(v), int(ts), int(st)) for k, v, ts, st in data.pop("pending")]
+    ckpt = Checkpoint(**data)
+    ckpt.signals = rows if ckpt.signal_rows > 0 else None
+    return ckpt, pending
+
+
+def _fields(ckpt: Any) -> dict[str, Any]:
     data = {k: v for k, v in vars(ckpt).items() if k != "signals"}
     data["format"] = FORMAT
     return data

@@ -10,8 +10,9 @@ message that names the key, the value and what is allowed, then exits with statu
       - network.width=abc: Value 'abc' of type 'str' could not be converted to Integer
         (network.width takes int)
 
-Flags that change what Hydra does (``--cfg``, ``--help``, ``--config-dir``, ...) skip the
-check and leave everything to Hydra.
+``--config-dir``/``--config-name`` (the sweeps in ``sweeps/``) are checked the same way,
+the sweep config's own ``hydra.sweeper.params`` included.  Flags that change what Hydra
+does (``--cfg``, ``--help``, ...) skip the check and leave everything to Hydra.
 """
 
 from __future__ import annotations
@@ -93,15 +94,52 @@ def preflight(
     check: Callable[[DictConfig], None] = check_train,
 ) -> None:
     """Exit with status 2 and a clear message when ``argv`` cannot run (module docstring)."""
+    source = _config_source(argv)
+    if source is None:
+        return
+    argv, config_dir, name = source
     if any(a.split("=", 1)[0] in _HYDRA_ONLY_FLAGS for a in argv):
         return
     multirun = any(a in ("-m", "--multirun") for a in argv)
     overrides = [a for a in argv if not a.startswith("-")]
-    errors = check_overrides(overrides, multirun, config_name, check)
+    try:
+        errors = check_overrides(overrides, multirun, name or config_name, check, config_dir)
+    except (HydraException, OmegaConfBaseException) as err:  # e.g. no such --config-name
+        errors = [explain(err)]
     if errors:
         lines = "\n".join(f"  - {e}" for e in errors)
         print(f"cdqn: invalid configuration, nothing was started:\n{lines}", file=sys.stderr)
         sys.exit(EXIT_CONFIG)
+
+
+def _config_source(argv: list[str]) -> tuple[list[str], Path | None, str | None] | None:
+    """``argv`` without ``--config-dir``/``--config-name`` (and short forms) and their
+    values; None when a value is missing."""
+    rest: list[str] = []
+    found: dict[str, str] = {}
+    names = {"-cd": "dir", "--config-dir": "dir", "-cn": "name", "--config-name": "name"}
+    i = 0
+    while i < len(argv):
+        flag, eq, value = argv[i].partition("=")
+        if flag in names:
+            if not eq:
+                if i + 1 >= len(argv):
+                    return None
+                value, i = argv[i + 1], i + 1
+            found[names[flag]] = value
+        else:
+            rest.append(argv[i])
+        i += 1
+    config_dir = Path(found["dir"]).resolve() if "dir" in found else None
+    return rest, config_dir, found.get("name")
+
+
+def _sweeper_params(config_dir: Path, config_name: str, searchpath: list[str]) -> list[str]:
+    """The ``hydra.sweeper.params`` of a sweep config as overrides (``key=a,b,c``)."""
+    with initialize_config_dir(str(config_dir), version_base="1.3"):
+        cfg = compose(config_name, overrides=searchpath, return_hydra_config=True)
+    params = OmegaConf.select(cfg, "hydra.sweeper.params") or {}
+    return [f"{k}={v}" for k, v in params.items()]
 
 
 def check_overrides(
@@ -109,8 +147,20 @@ def check_overrides(
     multirun: bool = False,
     config_name: str = "config",
     check: Callable[[DictConfig], None] = check_train,
+    config_dir: Path | None = None,
 ) -> list[str]:
-    """The problems of a command line, one message each (empty: it can run)."""
+    """The problems of a command line, one message each (empty: it can run).
+
+    ``config_dir`` (``--config-dir``, e.g. ``sweeps``): the primary config comes from there,
+    with ``conf/`` on the search path, and in a multirun the config's own
+    ``hydra.sweeper.params`` are swept too (the command line's value of a key wins)."""
+    searchpath: list[str] = []
+    if config_dir is not None and config_dir != CONF_DIR:
+        searchpath = [f"hydra.searchpath=[file://{CONF_DIR}]"]
+        if multirun:
+            given = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+            params = _sweeper_params(config_dir, config_name, searchpath)
+            overrides = [p for p in params if p.split("=", 1)[0] not in given] + overrides
     parser = OverridesParser.create()
     parsed: list[Override] = []
     for text in overrides:
@@ -127,9 +177,9 @@ def check_overrides(
     jobs = _jobs(parsed, overrides, multirun)
     if jobs is None:
         return []  # sweeps Hydra expands itself (glob, interval): Hydra checks them
-    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+    with initialize_config_dir(str(config_dir or CONF_DIR), version_base="1.3"):
         for job in jobs[:MAX_COMPOSITIONS]:
-            for msg in _check_one(job, config_name, check):
+            for msg in _check_one([*searchpath, *job], config_name, check):
                 if msg not in errors:
                     errors.append(msg)
     return errors

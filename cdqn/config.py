@@ -287,8 +287,14 @@ class TrackingConfig:
     timeout: float = 10.0
     """Seconds a tracking server gets to answer the start-up check."""
     skip_finished: bool = False
-    """Skip a run whose configuration and seed already have a FINISHED run in the store
-    (restarted sweeps; cdqn.sweep)."""
+    """Skip a run whose configuration and seed already have a FINISHED run in the store,
+    continue one that was KILLED from its checkpoint (restarted sweeps; cdqn.sweep)."""
+    retry_s: float = 300.0
+    """Seconds a metric, tag or artifact write is retried (with backoff) while the store
+    does not answer; past them the run checkpoints locally and stops (resume later)."""
+    local_checkpoints: str = "checkpoints"
+    """Folder for checkpoints of runs whose tracking store went away
+    (``<folder>/<run_id>/state.pt``); relative to the working folder."""
 
 
 def resolve_tracking_uri(uri: str) -> str:
@@ -506,6 +512,7 @@ def _tracking_checks(cfg: TrackingConfig) -> list[tuple[bool, str]]:
         (bool(cfg.uri.strip()), "tracking.uri='': give an MLflow tracking URI"),
         (bool(cfg.experiment.strip()), "tracking.experiment='': give an experiment name"),
         (cfg.timeout > 0, f"tracking.timeout={cfg.timeout}: must be > 0 seconds"),
+        (cfg.retry_s >= 0, f"tracking.retry_s={cfg.retry_s}: must be >= 0 seconds"),
     ]
 
 

@@ -17,9 +17,16 @@ numbers are bit-identical (``tests/test_population.py``).
 :class:`ControlledPopulation` is the batched :class:`cdqn.agents.ControlledAgent` (fast path)
 for ``none``, ``h2``, ``hinf`` and ``hinf_f``.  Double DQN and ``train.fast_path=false`` fall
 back to training the members one after another in the same process (Double DQN's cost is
-its minibatch step, which batching the seeds would not make cheaper).  Members write no
-checkpoints: an interrupted population marks its unfinished members KILLED, and a restarted
-sweep with ``tracking.skip_finished=true`` trains exactly those again.
+its minibatch step, which batching the seeds would not make cheaper).
+
+A population checkpoints as a whole (:mod:`cdqn.population_checkpoint`): each time its
+slowest member has completed another ``train.checkpoint_every`` episodes, and when
+SIGINT/SIGTERM stops it (at the end of the current population step), every member's state
+goes into its own run's checkpoint slots and the members still training are closed KILLED
+with ``resume=<run_id>`` in their ``failure_reason``.  ``python -m cdqn.train
+resume=<run_id>`` on any member continues every unfinished member of its population
+(:func:`resume_population`), bit for bit as if uninterrupted; a restarted sweep with
+``tracking.skip_finished=true`` does the same for its KILLED members.
 """
 
 from __future__ import annotations
@@ -28,6 +35,7 @@ import copy
 import logging
 import math
 import tempfile
+import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,16 +46,38 @@ from omegaconf import DictConfig, OmegaConf, read_write
 from tqdm.auto import tqdm
 
 from cdqn.agents.base import StepRecord
-from cdqn.agents.episodic_replay import PopulationTail, qualifies
+from cdqn.agents.episodic_replay import PopulationTail, Transitions, qualifies
+from cdqn.checkpoint import CheckpointStore
 from cdqn.config import Config, ReplayConfig, resolve_tracking_uri, validate
 from cdqn.control.factory import ControllerSetup, make_controller
 from cdqn.envs import env_sizes, make_env
 from cdqn.interrupt import GracefulStop
 from cdqn.network import NetworkSpec, QNetwork, save_network
+from cdqn.population_checkpoint import (
+    MemberCheckpoint,
+    capture_member,
+    common_sequence,
+    restore_member,
+    stored_config,
+)
 from cdqn.population_step import CHECK, DONE, ControlledPopulation
 from cdqn.signals import COLUMNS, SignalBuffer
-from cdqn.sweep import config_hash, ensure_store, final_score, find_finished
-from cdqn.tracking import Recorder, check_tracking, flatten, git_commit
+from cdqn.sweep import (
+    config_hash,
+    ensure_store,
+    final_score,
+    find_finished,
+    find_resumable,
+    process_tags,
+)
+from cdqn.tracking import (
+    Recorder,
+    TrackingOutage,
+    check_tracking,
+    fail_fast_http,
+    flatten,
+    git_commit,
+)
 from cdqn.trainer import DivergenceError, _diagnose, episode_stats
 from cdqn.vector_env import VectorEnv, make_vector_env
 
@@ -80,6 +110,15 @@ class Member:
     episode: int = 0
     status: str = "RUNNING"
     reason: str | None = None
+    carry: dict | None = None
+    replay_tail: Transitions | None = None
+    """Episodic replay: the transitions of the episode in progress, set for checkpoints."""
+    """Where a restored member stands between two steps (observation ``obs``, step ``t`` of
+    the episode, return so far ``ret``); None: it starts with a reset."""
+    checkpointed: int | None = None
+    """Episode of the member's last checkpoint, if any."""
+    logged: set[int] = field(default_factory=set)
+    """Episodes whose metrics are already stored (a resumed member skips them)."""
 
     @property
     def score(self) -> float:
@@ -131,6 +170,9 @@ def train_population(
     progress: bool = False,
     should_stop: Callable[[], bool] | None = None,
     max_steps: int | None = None,
+    on_checkpoint: Callable[[list[tuple[int, Member]], np.ndarray, np.ndarray, np.ndarray], None]
+    | None = None,
+    checkpoint_every: int = 0,
     replay: ReplayConfig | None = None,
 ) -> None:
     """The training loop of :func:`cdqn.trainer.train` for all members at once.
@@ -140,19 +182,40 @@ def train_population(
     the member, the agent and its row, before the row is dropped).  ``max_steps`` (for the
     benchmark) ends the loop after that many population steps.  ``replay``: episodic replay
     after each member's qualifying episode, as :func:`cdqn.trainer.train` does it.
+
+    ``on_checkpoint(items, obs, t, ret)`` (items: ``(row, member)`` pairs) is called between
+    two steps, with every member's signal rows flushed: each time the slowest member has
+    completed another ``checkpoint_every`` episodes, and when ``should_stop`` stops the
+    loop.  A member with a ``carry`` continues from it instead of starting with a reset.
     """
     members = list(members)
-    obs = np.stack([venv.reset(j, m.seed) for j, m in enumerate(members)])
-    for j in range(len(members)):
-        agent.start_episode(j)
-    t = np.zeros(len(members), dtype=np.int64)
-    ret = np.zeros(len(members))
+    first = [venv.reset(j, m.seed) if m.carry is None else m.carry["obs"]
+             for j, m in enumerate(members)]  # fmt: skip
+    obs = np.stack(first)
+    for j, m in enumerate(members):
+        if m.carry is None:
+            agent.start_episode(j)
+    t = np.array([m.carry["t"] if m.carry else 0 for m in members], dtype=np.int64)
+    ret = np.array([m.carry["ret"] if m.carry else 0.0 for m in members])
+    every = checkpoint_every if on_checkpoint is not None else 0
+    due = (min(m.episode for m in members) // every + 1) * every if every else 0
     ep = np.array([m.episode for m in members], dtype=float)
     staging = _Staging(len(members))
     tail = None
     if replay is not None and replay.repeats > 0:
         cap = replay.last or getattr(venv.envs[0].spec, "max_episode_steps", None) or 10_000
         tail = PopulationTail(len(members), obs.shape[1], cap)
+        for j, m in enumerate(members):
+            if m.carry is not None and m.carry.get("replay_tail") is not None:
+                tail.restore(j, Transitions(**m.carry["replay_tail"]))
+
+    def with_tails(items: list[tuple[int, Member]]) -> list[tuple[int, Member]]:
+        """``items`` with each member's transitions of the episode in progress attached."""
+        for j, m in items:
+            if tail is not None:
+                m.replay_tail = tail.transitions(j, min(int(t[j]), replay.last or int(t[j])))  # type: ignore[union-attr]
+        return items
+
     bar = tqdm(total=episodes * len(members), disable=not progress, unit="ep", leave=True)
     steps = 0
     try:
@@ -236,6 +299,11 @@ def train_population(
             steps += 1
             stop = should_stop is not None and should_stop()
             if stop or (max_steps is not None and steps >= max_steps):
+                gone = set(leaving)
+                survivors = [(j, m) for j, m in enumerate(members) if j not in gone]
+                if stop and on_checkpoint is not None and survivors:
+                    staging.flush_all(members)
+                    on_checkpoint(with_tails(survivors), obs, t, ret)
                 for m in members:
                     if m.status == "RUNNING":
                         m.status = "KILLED"
@@ -255,6 +323,11 @@ def train_population(
                     tail.select(keep)
                 staging.select(keep, members)
                 obs, t, ret, ep = obs[keep], t[keep], ret[keep], ep[keep]
+            if every and (slowest := min(m.episode for m in members)) >= due:
+                staging.flush_all(members)
+                assert on_checkpoint is not None
+                on_checkpoint(with_tails(list(enumerate(members))), obs, t, ret)
+                due = (slowest // every + 1) * every
     finally:
         bar.close()
 
@@ -344,26 +417,104 @@ def run_population(cfg: DictConfig, progress: bool = True) -> PopulationResult:
         for m in members:
             results[m.seed] = run(m.cfg, progress=progress)
         return PopulationResult([results[s] for s in sorted(results)])
+    if conf.tracking.skip_finished:  # continue this job's KILLED members (cdqn.sweep)
+        signum = _resume_killed(cfg, uri, members, results, progress)
+        members = [m for m in members if m.seed not in results]
+        if signum is not None or not members:
+            return PopulationResult([results[s] for s in sorted(results)], signum)
     setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
 
     agent, venv = build_population(conf, setup, [m.seed for m in members])
-    envs = list(venv.envs)
     seeds = member_seeds(conf.seed, conf.train.population)
-    for m in members:
-        m.recorder = start_member_run(m, conf, setup, uri, f"{seeds[0]}-{seeds[-1]}")
+    population_id = uuid.uuid4().hex
+    try:
+        for m in members:
+            m.recorder = start_member_run(
+                m, conf, setup, uri, f"{seeds[0]}-{seeds[-1]}", population_id
+            )
+    except BaseException:
+        for env in venv.envs:
+            env.close()
+        raise
+    signum = train_members(conf, agent, venv, members, results, progress)
+    return PopulationResult([results[s] for s in sorted(results)], signum)
+
+
+def train_members(
+    conf: Config,
+    agent: ControlledPopulation,
+    venv: VectorEnv,
+    members: list[Member],
+    results: dict,
+    progress: bool,
+    sequence: int = 0,
+    stores: dict[int, CheckpointStore] | None = None,
+) -> int | None:
+    """Train ``members`` (their runs open) to the end, with checkpoints (every
+    ``train.checkpoint_every`` episodes of the slowest member and on SIGINT/SIGTERM, see
+    :mod:`cdqn.population_checkpoint`); put each member's ``RunResult`` into ``results``
+    and close its run.  ``sequence``: number of the last checkpoint (a resumed population
+    continues the count).  Returns the signal that stopped training, if any."""
+    from cdqn.train import RunResult  # noqa: PLC0415
+
+    envs = list(venv.envs)
+    episodes = conf.train.episodes
+    stores = stores or {
+        m.seed: CheckpointStore(
+            m.recorder.client, m.recorder.run_id, conf.train.signals, kind=MemberCheckpoint
+        )
+        for m in members
+        if m.recorder is not None
+    }
+    counter = [sequence]
+    for m in members:  # writes retried while the store does not answer (tracking.retry_s)
+        if m.recorder is not None:
+            m.recorder.retry_s = stores[m.seed].retry_s = conf.tracking.retry_s
+            if m.recorder.uri.startswith(("http://", "https://")):
+                fail_fast_http(conf.tracking.timeout)
+
+    def on_checkpoint(
+        items: list[tuple[int, Member]], obs: np.ndarray, t: np.ndarray, ret: np.ndarray
+    ) -> None:
+        counter[0] += 1
+        ids = [m.recorder.run_id for _, m in items if m.recorder is not None]
+        for j, m in items:
+            assert m.recorder is not None
+            m.recorder.flush()
+            ckpt = capture_member(counter[0], ids, m, agent, venv, j, obs, t, ret,
+                                  m.signals.n if conf.train.signals else 0)  # fmt: skip
+            stores[m.seed].save(ckpt, m.signals)
+            m.checkpointed = m.episode
+
+    if not venv.checkpointable:
+        log.warning(
+            "population on %s: no checkpoints (only CartPole, Acrobot and MountainCar members "
+            "can be captured mid-episode); an interrupted member is trained again",
+            conf.env.id,
+        )
 
     def on_episode(m: Member, stats: object) -> None:
         assert m.recorder is not None
-        m.recorder.log_episode(stats)  # type: ignore[arg-type]
+        if stats.episode not in m.logged:  # type: ignore[attr-defined]
+            m.recorder.log_episode(stats)  # type: ignore[arg-type]
 
     stop = GracefulStop()
 
+    def killed_reason(m: Member, during: str) -> str:
+        assert m.recorder is not None
+        if m.checkpointed is None:
+            return f"{during}; no checkpoint yet, resume={m.recorder.run_id} trains it again"
+        where = (
+            "checkpoint written"
+            if stop.requested() and m.checkpointed == m.episode
+            else f"the last checkpoint is at episode {m.checkpointed}"
+        )
+        return f"{during}; {where}, continue the population with resume={m.recorder.run_id}"
+
     def on_member_end(m: Member, pop: ControlledPopulation, j: int) -> None:
         if m.status == "KILLED":
-            m.reason = (
-                f"{stop.name or 'stopped'} during episode {m.episode} of {conf.train.episodes}; "
-                "populations write no checkpoints: a restarted sweep with "
-                "tracking.skip_finished=true trains this seed again"
+            m.reason = killed_reason(
+                m, f"{stop.name or 'stopped'} during episode {m.episode} of {episodes}"
             )
         finish_member(m, pop.network(j), conf)
         assert m.recorder is not None
@@ -375,32 +526,149 @@ def run_population(cfg: DictConfig, progress: bool = True) -> PopulationResult:
                 agent,
                 venv,
                 members,
-                episodes=conf.train.episodes,
+                episodes=episodes,
                 discount=conf.train.discount,
                 q_limit=conf.train.q_limit,
                 on_episode=on_episode,
                 on_member_end=on_member_end,
                 progress=progress and conf.train.progress,
                 should_stop=stop.requested,
+                on_checkpoint=on_checkpoint if venv.checkpointable else None,
+                checkpoint_every=conf.train.checkpoint_every,
                 replay=conf.weights.replay,
             )
+        except TrackingOutage as err:  # runs cannot be closed; the store has the checkpoints
+            open_ids = [m.recorder.run_id for m in members
+                        if m.seed not in results and m.recorder is not None]  # fmt: skip
+            log.error(
+                "%s. The members %s stay RUNNING in the store; when the server answers again, "
+                "resume=<any of them> (or the restarted sweep) continues them from their last "
+                "checkpoint", err, ", ".join(open_ids),
+            )  # fmt: skip
+            raise
         except BaseException as err:  # close the members' runs that are still open
+            stop.closing()
             for m in members:
                 if m.seed not in results and m.recorder is not None:
                     m.status = "KILLED" if isinstance(err, KeyboardInterrupt) else "FAILED"
                     m.reason = f"{type(err).__name__}: {err}"
+                    if m.status == "KILLED":
+                        m.reason = killed_reason(m, f"stopped during episode {m.episode}")
                     finish_member(m, None, conf)
             raise
         finally:
             for env in envs:
                 env.close()
-    return PopulationResult([results[s] for s in sorted(results)], stop.signum)
+    return stop.signum
+
+
+def _resume_killed(
+    cfg: DictConfig, uri: str, members: list[Member], results: dict, progress: bool
+) -> int | None:
+    """Resume the runs of ``members`` that a restarted sweep finds KILLED (or left RUNNING by
+    a process that is gone), population by population; their results go into ``results``.
+    Returns the signal that stopped one of them, if any."""
+    from mlflow.tracking import MlflowClient  # noqa: PLC0415
+
+    client = MlflowClient(uri)
+    groups: dict[str, list] = {}
+    for m in members:
+        found = find_resumable(client, str(cfg.tracking.experiment), config_hash(m.cfg))
+        if found is not None and "population_id" in found.data.tags:
+            groups.setdefault(found.data.tags["population_id"], []).append(found)
+    for runs in groups.values():
+        ids = ", ".join(r.info.run_id for r in runs)
+        log.info("continuing KILLED population members from their checkpoints: %s", ids)
+        out = resume_population(uri, cfg.tracking, runs, progress)
+        for r in out.members:
+            seed = int(client.get_run(r.run_id).data.tags["seed"])
+            results[seed] = r
+        if out.signum is not None:
+            return out.signum
+    return None
+
+
+def resume_population(uri: str, tracking: object, runs: list, progress: bool) -> PopulationResult:
+    """Continue the members ``runs`` (MLflow runs of one population) from their newest
+    common checkpoint, each in its own run, to the planned episode count.
+
+    Without a common checkpoint the members train again from episode 0 in their runs
+    (episodes whose metrics are stored are not logged twice); as every member's numbers
+    depend on its seed alone, the result is the same either way.
+    """
+    from mlflow.tracking import MlflowClient  # noqa: PLC0415
+
+    client = MlflowClient(uri)
+    cfgs = [stored_config(client, r.info.run_id, tracking) for r in runs]
+    confs: list[Config] = [OmegaConf.to_object(c) for c in cfgs]  # type: ignore[misc]
+    conf = confs[0]
+    validate(conf)
+    setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
+    members = [Member(c.seed, cfg) for c, cfg in zip(confs, cfgs, strict=True)]
+    agent, venv = build_population(conf, setup, [m.seed for m in members])
+    try:
+        stores = {
+            m.seed: CheckpointStore(client, r.info.run_id, conf.train.signals, MemberCheckpoint)
+            for m, r in zip(members, runs, strict=True)
+        }
+        found = {m.seed: stores[m.seed].candidates() for m in members}
+        sequence = max((c.sequence for items in found.values() for c, _ in items), default=0)
+        common = common_sequence(found) if venv.checkpointable else None
+        chosen = {}
+        if common is not None:
+            for m in members:
+                ckpt, slot = next(c for c in found[m.seed] if c[0].sequence == common)
+                if not stores[m.seed].complete(ckpt, slot):
+                    chosen = {}
+                    break
+                chosen[m.seed] = ckpt
+        if not chosen:
+            log.warning("population has no common usable checkpoint: training it from episode 0")
+            stores = {
+                m.seed: CheckpointStore(client, r.info.run_id, conf.train.signals, MemberCheckpoint)
+                for m, r in zip(members, runs, strict=True)
+            }
+        for j, (m, r) in enumerate(zip(members, runs, strict=True)):
+            if chosen:
+                restore_member(chosen[m.seed], m, agent, venv, j)
+            reason = r.data.tags.get("failure_reason", "")
+            if r.info.status == "RUNNING":
+                log.warning("run %s is marked RUNNING (its process ended without closing it); "
+                            "continuing it", r.info.run_id)  # fmt: skip
+            m.recorder = Recorder.attach(uri, r.info.run_id)
+            tags = {
+                "resumed_from_episode": str(m.episode),
+                "resume_count": str(int(r.data.tags.get("resume_count", "0")) + 1),
+                **process_tags(),
+            }
+            if reason:
+                tags["previous_failure_reason"] = reason
+                client.delete_tag(r.info.run_id, "failure_reason")
+            m.recorder.set_tags(tags)
+            m.logged = m.recorder.logged_episodes()
+            log.info(
+                "resuming MLflow run %s (seed %d) at episode %d of %d",
+                r.info.run_id, m.seed, m.episode, conf.train.episodes,
+            )  # fmt: skip
+    except BaseException:
+        for env in venv.envs:
+            env.close()
+        raise
+    results: dict = {}
+    signum = train_members(conf, agent, venv, members, results, progress, sequence, stores)
+    return PopulationResult([results[s] for s in sorted(results)], signum)
 
 
 def start_member_run(
-    m: Member, conf: Config, setup: ControllerSetup, uri: str, population: str
+    m: Member,
+    conf: Config,
+    setup: ControllerSetup,
+    uri: str,
+    population: str,
+    population_id: str | None = None,
 ) -> Recorder:
-    """Open member ``m``'s MLflow run with the params, tags and artifacts of a single run."""
+    """Open member ``m``'s MLflow run with the params, tags and artifacts of a single run;
+    tag ``population_id`` names the population (what ``resume=`` finds its members by)."""
     container = OmegaConf.to_container(m.cfg, resolve=True)
     tags = {
         "env": conf.env.name,
@@ -411,6 +679,8 @@ def start_member_run(
         "design_source": setup.source,
         "config_hash": config_hash(m.cfg),
         "population": population,
+        "population_id": population_id or uuid.uuid4().hex,
+        **process_tags(),
     }
     rec = Recorder.start(
         uri,

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numba import njit
@@ -118,6 +119,16 @@ class ControllerArrays:
         self.gains, self.loss_weight = self.gains[keep], self.loss_weight[keep]
         self.x, self.unsolved = self.x[keep], self.unsolved[keep]
 
+    def state_dict(self, i: int) -> dict[str, Any]:
+        """Member ``i``'s controller state: ``x_c``, the H2 controller's last gains, loss
+        weight and unsolved count."""
+        return {"gains": self.gains[i].copy(), "loss_weight": float(self.loss_weight[i]),
+                "x": self.x[i].copy(), "unsolved": int(self.unsolved[i])}  # fmt: skip
+
+    def load_state_dict(self, i: int, state: dict[str, Any]) -> None:
+        self.gains[i], self.loss_weight[i] = state["gains"], state["loss_weight"]
+        self.x[i], self.unsolved[i] = state["x"], state["unsolved"]
+
 
 class ExplorationPlan:
     """ε-greedy decisions of ``K`` members, drawn ``block`` steps ahead from each member's
@@ -148,6 +159,21 @@ class ExplorationPlan:
     def select(self, keep: np.ndarray) -> None:
         self.rngs = [self.rngs[i] for i in keep]
         self.epsilon, self.plan = self.epsilon[keep], np.ascontiguousarray(self.plan[:, keep])
+
+    def state_dict(self, i: int) -> dict[str, Any]:
+        """Member ``i``'s generator state, ε after the drawn decisions, and the decisions
+        drawn but not yet taken (so that a restored plan continues bit for bit)."""
+        return {"rng": self.rngs[i].bit_generator.state, "epsilon": float(self.epsilon[i]),
+                "undrawn": self.plan[self.pos :, i].copy()}  # fmt: skip
+
+    def load_state_dict(self, i: int, state: dict[str, Any]) -> None:
+        """Restore member ``i``; every member of a plan shares one position in it, so all
+        members restored into one plan must come from the same population step."""
+        self.rngs[i].bit_generator.state = state["rng"]
+        self.epsilon[i] = state["epsilon"]
+        undrawn = np.asarray(state["undrawn"], dtype=np.int64)
+        self.pos = len(self.plan) - len(undrawn)
+        self.plan[self.pos :, i] = undrawn
 
 
 class ControlledPopulation:
@@ -256,6 +282,29 @@ class ControlledPopulation:
         self.x, self.p, self.q = self.x[keep], self.p[keep], self.q[keep]
         self.actions, self.flags = self.actions[keep], self.flags[keep]
         self.loss_seen = self.loss_seen[keep]
+
+    def state_dict(self, i: int) -> dict[str, Any]:
+        """Member ``i``'s state between two steps: parameters, the cached forward pass at
+        ``s``, the integrator ``x_e``, controller and exploration state (the population
+        agents' checkpoint protocol, :mod:`cdqn.population_checkpoint`)."""
+        n = self.net
+        return {
+            "w1t": n.w1t[i].copy(), "b1": n.b1[i].copy(), "w2": n.w2[i].copy(),
+            "b2": n.b2[i].copy(), "x": self.x[i].copy(), "p": self.p[i].copy(),
+            "q": self.q[i].copy(), "x_e": float(self.x_e[i]),
+            "loss_seen": bool(self.loss_seen[i]),
+            "controller": self.controller.state_dict(i),
+            "explore": self.explore.state_dict(i),
+        }  # fmt: skip
+
+    def load_state_dict(self, i: int, state: dict[str, Any]) -> None:
+        """Put member ``i`` into ``state`` (from :meth:`state_dict`)."""
+        n = self.net
+        n.w1t[i], n.b1[i], n.w2[i], n.b2[i] = state["w1t"], state["b1"], state["w2"], state["b2"]
+        self.x[i], self.p[i], self.q[i] = state["x"], state["p"], state["q"]
+        self.x_e[i], self.loss_seen[i] = state["x_e"], state["loss_seen"]
+        self.controller.load_state_dict(i, state["controller"])
+        self.explore.load_state_dict(i, state["explore"])
 
     def network(self, i: int) -> QNetwork:
         """Member ``i``'s network as a :class:`QNetwork`."""

@@ -22,7 +22,9 @@ import contextlib
 import hashlib
 import json
 import logging
+import os
 import random
+import socket
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -80,6 +82,55 @@ def find_finished(client: MlflowClient, experiment: str, chash: str) -> Run | No
         order_by=["attributes.start_time DESC"],
     )
     return runs[0] if runs else None
+
+
+RESUMABLE = ("KILLED", "RUNNING")
+"""Statuses of runs a restarted sweep continues from their last checkpoint."""
+
+
+def process_tags() -> dict[str, str]:
+    """Tags naming the process that trains a run (``host``, ``pid``): a run left RUNNING is
+    resumed only when that process is gone (:func:`process_gone`)."""
+    return {"host": socket.gethostname(), "pid": str(os.getpid())}
+
+
+def process_gone(tags: dict[str, str]) -> bool:
+    """Whether the process named by a run's ``host``/``pid`` tags no longer runs.  On
+    another host this cannot be seen; the run counts as abandoned (two sweeps writing one
+    store at the same time with the same configurations is not supported)."""
+    if tags.get("host") != socket.gethostname() or not tags.get("pid", "").isdigit():
+        return True
+    pid = int(tags["pid"])
+    if pid == os.getpid():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:
+        return False
+    return False
+
+
+def find_resumable(client: MlflowClient, experiment: str, chash: str) -> Run | None:
+    """The most recent run tagged ``config_hash = chash`` that was KILLED, or left RUNNING by
+    a process that is gone; a restarted sweep continues it instead of training anew."""
+    exp = client.get_experiment_by_name(experiment)
+    if exp is None:
+        return None
+    runs = client.search_runs(
+        [exp.experiment_id],
+        filter_string=f"tags.config_hash = '{chash}'",
+        order_by=["attributes.start_time DESC"],
+        max_results=1,
+    )
+    if not runs:  # the newest run with this hash decides (FAILED: start anew)
+        return None
+    run = runs[0]
+    status = run.info.status
+    if status == "KILLED" or (status == "RUNNING" and process_gone(run.data.tags)):
+        return run
+    return None
 
 
 def final_score(client: MlflowClient, run: Run) -> float:
@@ -158,3 +209,9 @@ def finished_elsewhere(cfg: DictConfig, uri: str) -> tuple[str, float] | None:
         run.data.tags.get("config_hash"),
     )
     return run.info.run_id, final_score(client, run)
+
+
+def resumable_elsewhere(cfg: DictConfig, uri: str) -> str | None:
+    """The run id a restarted sweep continues for ``cfg`` (:func:`find_resumable`), or None."""
+    run = find_resumable(MlflowClient(uri), str(cfg.tracking.experiment), config_hash(cfg))
+    return run.info.run_id if run is not None else None

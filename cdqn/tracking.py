@@ -9,15 +9,16 @@ one metric call per environment step.
 from __future__ import annotations
 
 import json
+import logging
 import os
 import subprocess
 import tempfile
 import time
 import urllib.error
 import urllib.request
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 from urllib.parse import urlsplit
 
 import mlflow
@@ -29,6 +30,8 @@ from cdqn.config import ConfigError
 from cdqn.signals import SignalBuffer, amplitude_spectra
 from cdqn.trainer import EpisodeStats
 
+log = logging.getLogger("cdqn")
+T = TypeVar("T")
 MAX_PARAM_LENGTH = 6000
 CONFIG_ARTIFACT = "config.yaml"
 """The run's resolved configuration (without the ``hydra`` section)."""
@@ -37,6 +40,71 @@ CONFIG_ARTIFACT = "config.yaml"
 class TrackingError(ConfigError):
     """The tracking store named by ``tracking.uri`` cannot be used (unreachable, not an
     MLflow server, not writable, no such run)."""
+
+
+class TrackingOutage(RuntimeError):
+    """The tracking store stopped answering during a run for longer than
+    ``tracking.retry_s``."""
+
+    def __init__(self, uri: str, what: str, seconds: float, err: BaseException) -> None:
+        super().__init__(
+            f"the tracking server {uri} did not answer for {seconds:.0f} s "
+            f"(tracking.retry_s) while writing {what}: {type(err).__name__}: "
+            f"{' '.join(str(err).split())[:300]}"
+        )
+        self.uri = uri
+
+
+_TRANSIENT_TEXT = ("API request", "Max retries", "Connection", "connection", "timed out",
+                   "Temporarily", "503", "502", "504")  # fmt: skip
+
+
+def transient(err: BaseException) -> bool:
+    """Whether ``err`` is a store that does not answer (worth retrying), not a refusal."""
+    if isinstance(err, OSError | ConnectionError | TimeoutError):
+        return True
+    if isinstance(err, MlflowException):
+        code = str(getattr(err, "error_code", ""))
+        return code in ("TEMPORARILY_UNAVAILABLE", "INTERNAL_ERROR") or any(
+            t in str(err) for t in _TRANSIENT_TEXT
+        )
+    return type(err).__module__.startswith(("requests", "urllib3"))
+
+
+def retrying(
+    call: Callable[[], T], what: str, retry_s: float, uri: str, first_delay: float = 0.5
+) -> T:
+    """``call()``, retried with exponential backoff (``first_delay`` doubling up to 10 s)
+    while the store does not answer, for up to ``retry_s`` seconds; then
+    :class:`TrackingOutage`.  Other errors are raised at once."""
+    t0, delay, warned = time.monotonic(), first_delay, False
+    while True:
+        try:
+            result = call()
+        except Exception as err:
+            if not transient(err):
+                raise
+            waited = time.monotonic() - t0
+            if waited >= retry_s:
+                raise TrackingOutage(uri, what, waited, err) from err
+            if not warned:
+                log.warning("tracking server %s not answering (%s); retrying %s for up to %g s",
+                            uri, type(err).__name__, what, retry_s)  # fmt: skip
+                warned = True
+            time.sleep(min(delay, max(retry_s - waited, 0.0)))
+            delay = min(delay * 2, 10.0)
+            continue
+        if warned:
+            log.warning("tracking server %s answers again (%s written after %.1f s)",
+                        uri, what, time.monotonic() - t0)  # fmt: skip
+        return result
+
+
+def fail_fast_http(timeout: float) -> None:
+    """Let MLflow's HTTP client give up on an unreachable server at once (its own retries
+    take minutes); :func:`retrying` does the waiting, for ``tracking.retry_s``."""
+    os.environ.setdefault("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")
+    os.environ.setdefault("MLFLOW_HTTP_REQUEST_TIMEOUT", str(max(int(timeout), 1)))
 
 
 def check_tracking(uri: str, timeout: float = 10.0) -> None:
@@ -145,8 +213,28 @@ class Recorder:
         self.client = client
         self.run_id = run_id
         self.flush_seconds = flush_seconds
+        self.retry_s = 0.0
+        """Seconds a write is retried while the store does not answer (``tracking.retry_s``;
+        0: not retried)."""
         self._pending: list[Metric] = []
         self._last_flush = time.monotonic()
+
+    @property
+    def uri(self) -> str:
+        """The tracking URI the run is written to."""
+        return str(self.client._tracking_client.tracking_uri)
+
+    def _retry(self, call: Callable[[], T], what: str) -> T:
+        return retrying(call, f"{what} of run {self.run_id}", self.retry_s, self.uri)
+
+    @property
+    def pending(self) -> list[tuple[str, float, int, int]]:
+        """Metrics not yet written: ``(key, value, timestamp, step)``."""
+        return [(m.key, m.value, m.timestamp, m.step) for m in self._pending]
+
+    def add_pending(self, items: list[tuple[str, float, int, int]]) -> None:
+        """Queue metrics (from :attr:`pending` of an earlier process) for the next flush."""
+        self._pending.extend(Metric(k, float(v), int(ts), int(st)) for k, v, ts, st in items)
 
     @classmethod
     def start(
@@ -205,7 +293,8 @@ class Recorder:
         return {m.step for m in self.client.get_metric_history(self.run_id, "episode_return")}
 
     def set_tags(self, tags: Mapping[str, str]) -> None:
-        self.client.log_batch(self.run_id, tags=[RunTag(k, str(v)) for k, v in tags.items()])
+        batch = [RunTag(k, str(v)) for k, v in tags.items()]
+        self._retry(lambda: self.client.log_batch(self.run_id, tags=batch), "tags")
 
     def log_episode(self, stats: EpisodeStats) -> None:
         ts = int(time.time() * 1000)
@@ -214,16 +303,23 @@ class Recorder:
             self.flush()
 
     def flush(self) -> None:
-        for i in range(0, len(self._pending), 1000):
-            self.client.log_batch(self.run_id, metrics=self._pending[i : i + 1000])
-        self._pending = []
+        """Write the pending metrics (a batch written is dropped from :attr:`pending`)."""
+        while self._pending:
+            batch = self._pending[:1000]
+            self._retry(lambda b=batch: self.client.log_batch(self.run_id, metrics=b), "metrics")
+            del self._pending[: len(batch)]
         self._last_flush = time.monotonic()
 
     def log_dict(self, data: Mapping[str, Any], artifact_file: str) -> None:
-        self.client.log_dict(self.run_id, dict(data), artifact_file)
+        self._retry(
+            lambda: self.client.log_dict(self.run_id, dict(data), artifact_file), artifact_file
+        )
 
     def log_dir(self, local_dir: Path, artifact_path: str) -> None:
-        self.client.log_artifacts(self.run_id, str(local_dir), artifact_path)
+        self._retry(
+            lambda: self.client.log_artifacts(self.run_id, str(local_dir), artifact_path),
+            f"artifacts {artifact_path}/",
+        )
 
     def log_signals(self, signals: SignalBuffer, dt: float) -> None:
         """``signals/steps.parquet`` and ``signals/fft.parquet`` (columns in cdqn.signals)."""
@@ -233,16 +329,15 @@ class Recorder:
             amplitude_spectra(steps, dt).to_parquet(
                 Path(tmp) / "fft.parquet", compression="zstd", index=False
             )
-            self.client.log_artifacts(self.run_id, tmp, "signals")
+            self._retry(lambda: self.client.log_artifacts(self.run_id, tmp, "signals"), "signals/")
 
     def finish(self, status: str = "FINISHED", failure_reason: str | None = None) -> None:
         """Flush metrics and close the run with ``status`` (FINISHED, FAILED or KILLED)."""
         self.flush()
         if failure_reason is not None:
             self.set_tags({"failure_reason": failure_reason[:5000]})
-        self.client.set_terminated(
-            self.run_id, status=RunStatus.to_string(RunStatus.from_string(status))
-        )
+        state = RunStatus.to_string(RunStatus.from_string(status))
+        self._retry(lambda: self.client.set_terminated(self.run_id, status=state), "status")
 
 
 def _param_value(value: Any) -> str:

@@ -7,12 +7,14 @@ train, record to MLflow.
     python -m cdqn.train resume=<run_id>                   # continue an interrupted run
 
 Exit status: 0 finished (or a multirun that ran; its summary lists failed jobs), 1 the run
-FAILED (diverged or crashed), 2 refused configuration or tracking store, 128 + signal number
-when SIGINT/SIGTERM stopped the run (KILLED, resumable).
+FAILED (diverged or crashed), 2 refused configuration or tracking store, 75 the tracking
+store went away for longer than ``tracking.retry_s`` (checkpointed locally, resumable),
+128 + signal number when SIGINT/SIGTERM stopped the run (KILLED, resumable).
 """
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 import os
@@ -20,6 +22,7 @@ import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from urllib.parse import urlsplit
 
 import gymnasium as gym
 import hydra
@@ -29,12 +32,12 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 from omegaconf.errors import OmegaConfBaseException
 
 from cdqn.agents import Agent, make_agent
 from cdqn.callbacks import record_job
-from cdqn.checkpoint import CheckpointStore, capture, restore
+from cdqn.checkpoint import CheckpointStore, capture, load_local, local_path, restore, save_local
 from cdqn.cli import preflight, resume_conflicts
 from cdqn.config import (
     Config,
@@ -49,14 +52,23 @@ from cdqn.envs import env_sizes, make_env
 from cdqn.interrupt import GracefulStop
 from cdqn.network import NetworkSpec, QNetwork, save_network
 from cdqn.ntk_bounds import measured_box
-from cdqn.population import run_population
+from cdqn.population import resume_population, run_population
+from cdqn.population_checkpoint import population_runs
 from cdqn.signals import SignalBuffer
-from cdqn.sweep import config_hash, ensure_store, finished_elsewhere
+from cdqn.sweep import (
+    config_hash,
+    ensure_store,
+    finished_elsewhere,
+    process_tags,
+    resumable_elsewhere,
+)
 from cdqn.tracking import (
     CONFIG_ARTIFACT,
     Recorder,
     TrackingError,
+    TrackingOutage,
     check_tracking,
+    fail_fast_http,
     flatten,
     git_commit,
 )
@@ -64,6 +76,10 @@ from cdqn.trainer import DivergenceError, EpisodeStats, TrainState, train
 
 log = logging.getLogger("cdqn")
 register_configs()
+OUTAGE = "OUTAGE"
+"""Status of a run that stopped because its tracking store went away (still RUNNING there)."""
+EXIT_OUTAGE = 75
+"""Exit status then (EX_TEMPFAIL): resume once the store answers again."""
 
 
 @dataclass
@@ -123,6 +139,9 @@ def run(cfg: DictConfig, progress: bool = True) -> RunResult:
             if conf.tracking.skip_finished and (done := finished_elsewhere(cfg, uri)) is not None:
                 env.close()
                 return RunResult(done[0], "FINISHED", done[1], "skipped: already FINISHED")
+            if conf.tracking.skip_finished and (killed := resumable_elsewhere(cfg, uri)):
+                env.close()
+                return _continue(cfg, killed, uri, progress)
         check_tracking(uri, conf.tracking.timeout)
         job = build(conf, env)
     except BaseException:
@@ -139,6 +158,7 @@ def run(cfg: DictConfig, progress: bool = True) -> RunResult:
         "git_commit": git_commit(),
         "design_source": job.setup.source,
         "config_hash": config_hash(cfg),
+        **process_tags(),
     }
     try:
         recorder = Recorder.start(
@@ -190,6 +210,9 @@ def resume(cfg: DictConfig, progress: bool = True) -> RunResult:
             f"resume={run_id}: the run FAILED because it {reason}; with the same seed it would "
             "diverge again (start a new run with other settings)"
         )
+    if "population_id" in info.data.tags:  # a member: continue its whole population
+        runs = population_runs(client, info)
+        return resume_population(uri, cfg.tracking, runs, progress).summary()
     if status == "RUNNING":
         log.warning(
             "run %s is marked RUNNING (its process ended without closing it, e.g. SIGKILL); "
@@ -223,6 +246,12 @@ def resume(cfg: DictConfig, progress: bool = True) -> RunResult:
     except BaseException:
         env.close()
         raise
+    pending: list[tuple[str, float, int, int]] = []
+    local = load_local(conf.tracking.local_checkpoints, run_id)
+    if local is not None and (ckpt is None or local[0].episode >= ckpt.episode):
+        ckpt, pending = local
+        log.info("continuing from the local checkpoint %s",
+                 local_path(conf.tracking.local_checkpoints, run_id))  # fmt: skip
     state, signals = TrainState(), SignalBuffer()
     if ckpt is None:
         log.warning("run %s has no usable checkpoint: training it again from episode 0", run_id)
@@ -236,12 +265,29 @@ def resume(cfg: DictConfig, progress: bool = True) -> RunResult:
         {
             "resumed_from_episode": str(state.episode),
             "resume_count": str(int(info.data.tags.get("resume_count", "0")) + 1),
+            **process_tags(),
         }
     )
     if reason:
         recorder.set_tags({"previous_failure_reason": reason})
         client.delete_tag(run_id, "failure_reason")
-    return _train(job, recorder, store, state, signals, progress, recorder.logged_episodes())
+    logged = recorder.logged_episodes()
+    recorder.add_pending(pending)  # metrics the store did not take before it went away
+    result = _train(job, recorder, store, state, signals, progress, logged)
+    if local is not None and result.status != OUTAGE:
+        local_path(conf.tracking.local_checkpoints, run_id).unlink(missing_ok=True)
+    return result
+
+
+def _continue(cfg: DictConfig, run_id: str, uri: str, progress: bool) -> RunResult:
+    """A restarted sweep's job whose run was KILLED (or left RUNNING by a process that is
+    gone): continue that run from its checkpoint (:func:`resume`)."""
+    log.info("continuing run %s of this configuration from its last checkpoint", run_id)
+    again = copy.deepcopy(cfg)
+    with read_write(again), open_dict(again):
+        again.resume = run_id
+        again.tracking.uri = uri
+    return resume(again, progress)
 
 
 def _train(
@@ -276,6 +322,10 @@ def _train(
             checkpoint(st)
 
     status, reason = "FINISHED", None
+    outage: TrackingOutage | None = None
+    store.retry_s = recorder.retry_s = conf.tracking.retry_s
+    if urlsplit(recorder.uri).scheme in ("http", "https"):
+        fail_fast_http(conf.tracking.timeout)
     stop = GracefulStop()
     with stop:
         try:
@@ -311,25 +361,68 @@ def _train(
                 f"is at episode {last_checkpoint}, continue with resume={recorder.run_id}"
             )
             raise
+        except TrackingOutage as err:  # at an episode boundary: checkpoint locally below
+            outage = err
         except Exception as err:
             status, reason = "FAILED", f"{type(err).__name__}: {err}"
             raise
         finally:
             stop.closing()
             try:
-                if conf.train.signals:
-                    recorder.log_signals(signals, conf.train.lr)
-                if conf.tracking.log_model:
-                    with tempfile.TemporaryDirectory() as tmp:
-                        save_network(job.net, Path(tmp))
-                        recorder.log_dir(Path(tmp), "model")
+                if outage is None:
+                    outage = _close_run(job, recorder, signals, status, reason)
             finally:
-                recorder.finish(status, reason)
                 job.env.close()
-                if status != "FINISHED":
+                if outage is not None:
+                    status, reason = OUTAGE, _stop_locally(job, recorder, state, signals, outage)
+                elif status != "FINISHED":
                     log.warning("run %s %s: %s", recorder.run_id, status, reason)
     score = float(np.mean(state.returns[-100:])) if state.returns else float("nan")
     return RunResult(recorder.run_id, status, score, reason, stop.signum)
+
+
+def _close_run(
+    job: Job, recorder: Recorder, signals: SignalBuffer, status: str, reason: str | None
+) -> TrackingOutage | None:
+    """Signals, model and status of the run; the outage if the store stopped answering."""
+    conf = job.conf
+    try:
+        try:
+            if conf.train.signals:
+                recorder.log_signals(signals, conf.train.lr)
+            if conf.tracking.log_model:
+                with tempfile.TemporaryDirectory() as tmp:
+                    save_network(job.net, Path(tmp))
+                    recorder.log_dir(Path(tmp), "model")
+        except TrackingOutage:
+            raise
+        except BaseException:
+            recorder.finish(status, reason)
+            raise
+        recorder.finish(status, reason)
+    except TrackingOutage as err:
+        return err
+    return None
+
+
+def _stop_locally(
+    job: Job, recorder: Recorder, state: TrainState, signals: SignalBuffer, err: TrackingOutage
+) -> str:
+    """The store stayed away past ``tracking.retry_s``: checkpoint (at the episode boundary
+    where the write failed) and the metrics not yet written into a local file; say where."""
+    conf = job.conf
+    rows = signals.n if conf.train.signals else 0
+    ckpt = capture(job.agent, job.env, state, job.rng, rows)
+    path = save_local(conf.tracking.local_checkpoints, recorder.run_id, ckpt, signals,
+                      recorder.pending)  # fmt: skip
+    message = (
+        f"{err}. Checkpoint of episode {state.episode} of {conf.train.episodes} written locally "
+        f"to {path}; the run stays RUNNING in the store. When the server answers again: "
+        f"python -m cdqn.train resume={recorder.run_id} tracking.uri={err.uri} "
+        f"tracking.local_checkpoints={path.parents[1]}"
+    )
+    log.error("%s", message)
+    return message
 
 
 def _is_multirun() -> bool:
@@ -354,6 +447,11 @@ def main(cfg: DictConfig) -> float:
         if not multirun:
             sys.exit(2)
         return float("nan")
+    except TrackingOutage as err:  # a population's store went away (its runs stay RUNNING)
+        record_job(OUTAGE, reason=str(err))
+        if not multirun:
+            sys.exit(EXIT_OUTAGE)
+        return float("nan")
     except KeyboardInterrupt:
         log.error("interrupted")
         sys.exit(130)
@@ -364,6 +462,8 @@ def main(cfg: DictConfig) -> float:
         log.exception("job failed")
         return float("nan")
     record_job(result.status, result.run_id, result.reason, result.final_score)
+    if result.status == OUTAGE:
+        sys.exit(EXIT_OUTAGE)
     if result.status == "KILLED":
         sys.exit(128 + (result.signum or 2))
     if result.status == "FAILED" and not multirun:

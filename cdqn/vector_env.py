@@ -24,7 +24,7 @@ from __future__ import annotations
 import functools
 import math
 from math import pi
-from typing import NamedTuple, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import gymnasium as gym
 import numpy as np
@@ -60,6 +60,17 @@ class VectorEnv(Protocol):
     def select(self, keep: np.ndarray) -> None:
         """Keep only the members ``keep`` (indices, in that order)."""
         ...
+
+    @property
+    def checkpointable(self) -> bool:
+        """Whether :meth:`state_dict` captures every member between two steps."""
+        ...
+
+    def state_dict(self, i: int) -> dict[str, Any]:
+        """Member ``i``'s environment state between two steps (for checkpoints)."""
+        ...
+
+    def load_state_dict(self, i: int, state: dict[str, Any]) -> None: ...
 
 
 def _unwrap(
@@ -116,6 +127,65 @@ class GymLoop:
 
     def select(self, keep: np.ndarray) -> None:
         self.envs = [self.envs[i] for i in keep]
+
+    @property
+    def checkpointable(self) -> bool:
+        """Whether :meth:`state_dict` can capture the members mid-episode (the classic
+        control environments, whose whole state is ``state`` and the step count)."""
+        return all(type(_unwrap(env)[0]) in ClassicControlTwin.KINDS for env in self.envs)
+
+    def state_dict(self, i: int) -> dict[str, Any]:
+        """Member ``i``'s environment between two steps (classic control only)."""
+        env = self.envs[i]
+        base = env.unwrapped
+        out = {"state": np.array(base.state, dtype=np.float64), "np_random": _rng_state(env),
+               "elapsed": int(getattr(_time_limit(env), "_elapsed_steps", 0) or 0)}  # fmt: skip
+        if hasattr(base, "steps_beyond_terminated"):
+            out["beyond"] = (
+                -1 if base.steps_beyond_terminated is None else int(base.steps_beyond_terminated)
+            )
+        return out
+
+    def load_state_dict(self, i: int, state: dict[str, Any]) -> None:
+        env = self.envs[i]
+        base = env.unwrapped
+        _set_rng_state(env, state["np_random"])
+        base.state = np.array(state["state"], dtype=np.float64)
+        if "beyond" in state:
+            base.steps_beyond_terminated = None if state["beyond"] < 0 else state["beyond"]
+        limit = _time_limit(env)
+        if limit is not None:
+            limit._elapsed_steps = state["elapsed"]
+        _mark_reset(env)
+
+
+def _time_limit(env: gym.Env) -> TimeLimit | None:
+    while isinstance(env, gym.Wrapper):
+        if isinstance(env, TimeLimit):
+            return env
+        env = env.env
+    return None
+
+
+def _mark_reset(env: gym.Env) -> None:
+    """Let a restored environment step without a reset (``OrderEnforcing``; the passive
+    checker's first-step checks, which compare with the reset's data, are skipped)."""
+    while isinstance(env, gym.Wrapper):
+        if isinstance(env, OrderEnforcing):
+            env._has_reset = True
+        if isinstance(env, PassiveEnvChecker):
+            env.checked_step = env.checked_data_reuse = True
+        env = env.env
+
+
+def _rng_state(env: gym.Env) -> dict[str, Any]:
+    return env.unwrapped.np_random.bit_generator.state
+
+
+def _set_rng_state(env: gym.Env, state: dict[str, Any]) -> None:
+    bit_generator = getattr(np.random, state["bit_generator"])()
+    bit_generator.state = state
+    env.unwrapped.np_random = np.random.Generator(bit_generator)
 
 
 class ClassicControlTwin:
@@ -185,6 +255,18 @@ class ClassicControlTwin:
         self.envs = [self.envs[i] for i in keep]
         self.bases = [self.bases[i] for i in keep]
         self.state, self.elapsed = self.state[keep], self.elapsed[keep]
+
+    checkpointable = True
+
+    def state_dict(self, i: int) -> dict[str, Any]:
+        """Member ``i``'s environment between two steps: the twin's state and step count and
+        the member's ``np_random`` (which draws the next episode's start)."""
+        return {"state": self.state[i].copy(), "elapsed": int(self.elapsed[i]),
+                "np_random": _rng_state(self.envs[i])}  # fmt: skip
+
+    def load_state_dict(self, i: int, state: dict[str, Any]) -> None:
+        self.state[i], self.elapsed[i] = state["state"], state["elapsed"]
+        _set_rng_state(self.envs[i], state["np_random"])
 
     def step(self, actions: np.ndarray) -> VectorStep:
         k = len(actions)

@@ -64,57 +64,82 @@ def signals_after_episode(monkeypatch: pytest.MonkeyPatch) -> Callable[..., None
     return arm
 
 
-@contextmanager
-def mlflow_server(root: Path, start_timeout: float = 180.0) -> Iterator[str]:
+class MlflowServer:
     """A real ``mlflow server`` on 127.0.0.1 (sqlite backend, artifacts served from
-    ``root/artifacts``); yields its URI and stops the server (its whole process group)."""
-    port = free_port()
-    log = (root / "server.log").open("w")
-    proc = subprocess.Popen(
-        [
-            str(Path(sys.executable).with_name("mlflow")),
-            "server",
-            "--backend-store-uri",
-            f"sqlite:///{root / 'server.db'}",
-            "--artifacts-destination",
-            str(root / "artifacts"),
-            "--serve-artifacts",
-            "--host",
-            "127.0.0.1",
-            "--port",
-            str(port),
-            "--workers",
-            "1",
-        ],
-        cwd=root,
-        stdout=log,
-        stderr=subprocess.STDOUT,
-        env={**os.environ, "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"},
-        start_new_session=True,  # its own process group: stopped together below
-    )
-    uri = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + start_timeout
+    ``root/artifacts``) that can be stopped and started again on the same port, with the
+    same store (a server that goes away during a run and comes back)."""
+
+    def __init__(self, root: Path, port: int | None = None) -> None:
+        self.root = root
+        self.port = port or free_port()
+        self.uri = f"http://127.0.0.1:{self.port}"
+        self.proc: subprocess.Popen[bytes] | None = None
+        self._log = None
+
+    def start(self, timeout: float = 180.0) -> None:
+        self._log = (self.root / "server.log").open("a")
+        self.proc = subprocess.Popen(
+            [
+                str(Path(sys.executable).with_name("mlflow")),
+                "server",
+                "--backend-store-uri",
+                f"sqlite:///{self.root / 'server.db'}",
+                "--artifacts-destination",
+                str(self.root / "artifacts"),
+                "--serve-artifacts",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                str(self.port),
+                "--workers",
+                "1",
+            ],
+            cwd=self.root,
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+            env={**os.environ, "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"},
+            start_new_session=True,  # its own process group: stopped together below
+        )
+        deadline = time.monotonic() + timeout
         while True:
             try:
-                with urllib.request.urlopen(f"{uri}/health", timeout=2) as resp:
+                with urllib.request.urlopen(f"{self.uri}/health", timeout=2) as resp:
                     if resp.read().strip() == b"OK":
-                        break
+                        return
             except OSError:
                 pass
-            if proc.poll() is not None or time.monotonic() > deadline:
-                log.flush()
-                raise RuntimeError(
-                    f"mlflow server did not come up: {(root / 'server.log').read_text()[-2000:]}"
-                )
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                self._log.flush()
+                log = (self.root / "server.log").read_text()[-2000:]
+                self.stop()
+                raise RuntimeError(f"mlflow server did not come up: {log}")
             time.sleep(0.5)
-        yield uri
-    finally:
+
+    def stop(self) -> None:
+        """Stop the server's whole process group (the CLI, uvicorn and its workers)."""
+        if self.proc is None:
+            return
         for sig, wait in ((signal.SIGTERM, 20.0), (signal.SIGKILL, 10.0)):
-            try:  # the whole group: the CLI, uvicorn and anything they started
-                os.killpg(proc.pid, sig)
+            try:
+                os.killpg(self.proc.pid, sig)
             except ProcessLookupError:
                 break
             with suppress(subprocess.TimeoutExpired):
-                proc.wait(wait)
-        log.close()
+                self.proc.wait(wait)
+                break
+        self.proc = None
+        if self._log is not None:
+            self._log.close()
+            self._log = None
+
+
+@contextmanager
+def mlflow_server(root: Path, start_timeout: float = 180.0) -> Iterator[str]:
+    """A real ``mlflow server`` on 127.0.0.1 (:class:`MlflowServer`); yields its URI and
+    stops the server (its whole process group)."""
+    server = MlflowServer(root)
+    server.start(start_timeout)
+    try:
+        yield server.uri
+    finally:
+        server.stop()

@@ -248,6 +248,7 @@ def test_population_member_is_recorded_as_its_single_run(tracking_uri: str) -> N
         tags_a = {k: v for k, v in ra.tags.items() if not k.startswith("mlflow.")}
         tags_b = {k: v for k, v in rb.tags.items() if not k.startswith("mlflow.")}
         assert tags_b.pop("population") == "3-4"
+        assert len(tags_b.pop("population_id")) == 32  # what resume= finds the members by
         assert tags_a == tags_b
         assert _artifacts(client, single.run_id) == _artifacts(client, member.run_id)
         assert single.final_score == member.final_score
@@ -272,3 +273,31 @@ def test_double_dqn_population_trains_its_seeds_one_after_another(tracking_uri: 
     assert seeds == ["5", "6"] and member_seeds(5, 2) == [5, 6]
     assert {r.status for r in result.members} == {"FINISHED"}
     assert result.summary().status == "FINISHED"
+
+
+@pytest.mark.parametrize("twin", [True, False], ids=["twin", "gym-loop"])
+def test_environment_state_between_two_steps_round_trips(twin: bool) -> None:
+    """A member's environment captured mid-episode (``state_dict``) and loaded into freshly
+    made environments continues with the same observations, rewards and resets."""
+    cfg = ENVS["CartPole-v1"]
+
+    def make() -> object:
+        envs = [make_env(cfg) for _ in range(2)]
+        return ClassicControlTwin(envs) if twin else GymLoop(envs)
+
+    venv, copy_ = make(), make()
+    assert venv.checkpointable
+    for i in range(2):
+        venv.reset(i, 20 + i)
+    gen = np.random.default_rng(1)
+    for _ in range(7):
+        venv.step(gen.integers(2, size=2))
+    for i in range(2):
+        copy_.load_state_dict(i, venv.state_dict(i))
+    for _ in range(400):
+        actions = gen.integers(2, size=2)
+        a, b = venv.step(actions), copy_.step(actions)
+        for x, y in zip(a, b, strict=True):
+            assert np.array_equal(x, y)
+        for i in np.flatnonzero(a.terminated | a.truncated):
+            assert np.array_equal(venv.reset(i, None), copy_.reset(i, None))

@@ -193,3 +193,109 @@ def test_sigterm_to_training_process_then_cli_resume(tmp_path: Path, store: str)
     )
     reference = run(compose_config([*args[:-1], "train.checkpoint_every=0", f"tracking.uri={uri}"]))
     _assert_same_run(client, killed.info.run_id, reference.run_id)
+
+
+POPULATION = [*CONTROLLED, "train.population=3", "train.episodes=300"]
+
+
+def _member_runs(client: MlflowClient, run_ids: list[str]) -> dict[str, str]:
+    """seed -> run id."""
+    return {client.get_run(r).data.tags["seed"]: r for r in run_ids}
+
+
+@pytest.mark.slow
+def test_sigterm_to_population_process_then_resume_equals_uninterrupted(tmp_path: Path) -> None:
+    """A real population process gets SIGTERM after its first checkpoint; every member is
+    closed KILLED with the resume command; ``resume=<one member>`` continues all of them, and
+    every member's returns and signal rows equal those of an uninterrupted population."""
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    args = [*POPULATION, "train.checkpoint_every=20", f"tracking.uri={uri}"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cdqn.train", *args],
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    deadline, seen = time.monotonic() + 240, []
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:  # the first population checkpoint, then the signal
+            seen.append(line)
+            if "checkpoint at episode" in line:
+                proc.send_signal(signal.SIGTERM)
+                break
+            assert time.monotonic() < deadline, "".join(seen)
+        rest, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+    output = "".join(seen) + rest
+    assert proc.returncode == 128 + signal.SIGTERM, output
+    client = MlflowClient(uri)
+    killed = client.search_runs(["1"])
+    assert len(killed) == 3 and {r.info.status for r in killed} == {"KILLED"}, output
+    for r in killed:
+        reason = r.data.tags["failure_reason"]
+        assert reason.startswith("SIGTERM during episode"), reason
+        assert f"checkpoint written, continue the population with resume={r.info.run_id}" in (
+            reason
+        )
+        assert len(_returns(client, r.info.run_id)) < 300
+    pid = {r.data.tags["population_id"] for r in killed}
+    assert len(pid) == 1
+
+    first = killed[0].info.run_id
+    resumed = run_cli("cdqn.train", [f"resume={first}", f"tracking.uri={uri}"], tmp_path)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    for r in killed:
+        assert f"resuming MLflow run {r.info.run_id}" in resumed.stdout + resumed.stderr
+
+    reference = run(
+        compose_config([*POPULATION, "train.checkpoint_every=0", f"tracking.uri={uri}"])
+    )
+    assert reference.status == "FINISHED"
+    ours = _member_runs(client, [r.info.run_id for r in killed])
+    theirs = _member_runs(client, reference.run_id.split(","))
+    assert sorted(ours) == sorted(theirs) == ["3", "4", "5"]
+    for seed, run_id in ours.items():
+        assert len(_returns(client, run_id)) == 300
+        _assert_same_run(client, run_id, theirs[seed])
+        tags = client.get_run(run_id).data.tags
+        assert tags["resume_count"] == "1" and "failure_reason" not in tags
+
+
+@pytest.mark.parametrize(
+    ("seed", "extra"),
+    [
+        (11, []),
+        # episodic replay of every episode: a mid-episode checkpoint holds the episode so far
+        (21, ["weights.replay.repeats=2", "weights.replay.last=null", "weights.replay.when=any"]),
+    ],
+)
+def test_population_resumes_from_a_periodic_checkpoint(
+    store: str, signal_at: Callable[..., None], seed: int, extra: list[str]
+) -> None:
+    """Two signals stop a population at once (mid-step, no checkpoint then): resume goes
+    back to the last periodic checkpoint, whose members are mid-episode, and still equals
+    an uninterrupted population."""
+    client = MlflowClient(store)
+    base = [*CONTROLLED, *extra, "train.population=3", f"seed={seed}", f"tracking.uri={store}"]
+    signal_at(7, signal.SIGINT, signal.SIGINT)
+    with pytest.raises(KeyboardInterrupt):
+        run(compose_config([*base, "train.checkpoint_every=2"]), progress=False)
+    exp = client.get_experiment_by_name("cdqn").experiment_id
+    killed = client.search_runs([exp], f"tags.seed = '{seed}' and attributes.status = 'KILLED'")
+    assert len(killed) == 1
+    reason = killed[0].data.tags["failure_reason"]
+    assert "the last checkpoint is at episode" in reason, reason
+    resumed = run(compose_config([f"resume={killed[0].info.run_id}", f"tracking.uri={store}"]))
+    assert resumed.status == "FINISHED"
+    reference = run(compose_config([*base, "train.checkpoint_every=0"]), progress=False)
+    ours = _member_runs(client, resumed.run_id.split(","))
+    theirs = _member_runs(client, reference.run_id.split(","))
+    assert sorted(ours) == sorted(theirs) == [str(seed + i) for i in range(3)]
+    for seed, run_id in ours.items():
+        _assert_same_run(client, run_id, theirs[seed])

@@ -3,7 +3,10 @@ resumes; an unreachable or wrong URI is refused at start, within seconds."""
 
 from __future__ import annotations
 
+import os
 import signal
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -19,7 +22,13 @@ from cdqn.evaluate import evaluate
 from cdqn.tracking import TrackingError, check_tracking
 from cdqn.train import run
 from tests.conftest import TINY, compose_config
-from tests.helpers import free_port, mlflow_server, run_cli, signals_after_episode
+from tests.helpers import (
+    MlflowServer,
+    free_port,
+    mlflow_server,
+    run_cli,
+    signals_after_episode,
+)
 
 
 class _NotMlflow(BaseHTTPRequestHandler):
@@ -165,3 +174,131 @@ def test_interrupt_and_resume_through_the_server(
 
     assert returns(killed.run_id) == returns(reference.run_id)
     assert len(returns(killed.run_id)) == 8
+
+
+OUTAGE = [
+    "network=small",
+    "controller=hinf",
+    "train.episodes=400",
+    "train.progress=false",
+    "train.checkpoint_every=50",
+    "seed=5",
+]
+
+
+def _training(args: list[str], cwd: Path) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "cdqn.train", *args],
+        cwd=cwd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+
+
+def _read_until(proc: subprocess.Popen[str], text: str, seen: list[str]) -> None:
+    deadline = time.monotonic() + 240
+    assert proc.stdout is not None
+    for line in proc.stdout:
+        seen.append(line)
+        if text in line:
+            return
+        assert time.monotonic() < deadline, "".join(seen)
+    raise AssertionError(f"{text!r} never printed:\n{''.join(seen)[-3000:]}")
+
+
+def _returns(client: MlflowClient, run_id: str) -> list[float]:
+    history = client.get_metric_history(run_id, "episode_return")
+    assert len({m.step for m in history}) == len(history), "an episode was logged twice"
+    return [m.value for m in sorted(history, key=lambda m: m.step)]
+
+
+@pytest.mark.slow
+def test_a_server_that_goes_away_and_comes_back(tmp_path: Path) -> None:
+    """A real server stopped during a run: for less than ``tracking.retry_s`` the run waits
+    and loses nothing; for longer, it checkpoints locally, exits 75 naming the server and
+    the file, and ``resume=`` (server back) continues it to the uninterrupted result."""
+    root = tmp_path / "server"
+    root.mkdir()
+    server = MlflowServer(root)
+    server.start()
+    try:
+        uri = server.uri
+        # 1. a 5 s outage within tracking.retry_s=120: the run finishes, nothing lost
+        proc, seen = (
+            _training([*OUTAGE, f"tracking.uri={uri}", "tracking.retry_s=120"], tmp_path),
+            [],
+        )
+        try:
+            _read_until(proc, "checkpoint at episode 50", seen)
+            server.stop()
+            time.sleep(5)
+            server.start()
+            rest, _ = proc.communicate(timeout=300)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        output = "".join(seen) + rest
+        assert proc.returncode == 0, output[-3000:]
+        assert f"tracking server {uri} not answering" in output
+        client = MlflowClient(uri)
+        (blinked,) = client.search_runs(["1"])
+        assert blinked.info.status == "FINISHED"
+        assert len(_returns(client, blinked.info.run_id)) == 400
+
+        # 2. an outage longer than tracking.retry_s=3: local checkpoint, exit 75, resume
+        local = tmp_path / "local-checkpoints"
+        args = [
+            *OUTAGE,
+            "seed=6",
+            f"tracking.uri={uri}",
+            "tracking.retry_s=3",
+            f"tracking.local_checkpoints={local}",
+        ]
+        proc, seen = _training(args, tmp_path), []
+        try:
+            _read_until(proc, "checkpoint at episode 50", seen)
+            run_id = next(
+                r.info.run_id for r in client.search_runs(["1"]) if r.data.tags["seed"] == "6"
+            )
+            server.stop()
+            rest, _ = proc.communicate(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        output = "".join(seen) + rest
+        assert proc.returncode == 75, output[-3000:]
+        path = local / run_id / "state.pt"
+        assert f"the tracking server {uri} did not answer" in output
+        assert f"written locally to {path}" in output and path.is_file()
+        assert f"resume={run_id}" in output and "Traceback" not in output
+        server.start()
+        assert client.get_run(run_id).info.status == "RUNNING"
+        resumed = run_cli(
+            "cdqn.train",
+            [f"resume={run_id}", f"tracking.uri={uri}", f"tracking.local_checkpoints={local}"],
+            tmp_path,
+        )
+        assert resumed.returncode == 0, resumed.stderr[-3000:]
+        assert "continuing from the local checkpoint" in resumed.stdout + resumed.stderr
+        assert not path.exists()
+        reference = run(
+            compose_config([*OUTAGE, "seed=6", "train.checkpoint_every=0", f"tracking.uri={uri}"])
+        )
+        assert client.get_run(run_id).info.status == "FINISHED"
+        assert _returns(client, run_id) == _returns(client, reference.run_id)
+        ours = pd.read_parquet(client.download_artifacts(run_id, "signals/steps.parquet"))
+        theirs = pd.read_parquet(
+            client.download_artifacts(reference.run_id, "signals/steps.parquet")
+        )
+        pd.testing.assert_frame_equal(ours, theirs)
+        record = client.get_run(run_id)
+        print(
+            "outage run:",
+            record.info.status,
+            sorted(record.data.tags),
+            {k: len(client.get_metric_history(run_id, k)) for k in record.data.metrics},
+        )
+    finally:
+        server.stop()

@@ -3,11 +3,15 @@ FINISHED, and parallel jobs share a fresh SQLite store safely."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import multiprocessing
 import os
+import signal
 import subprocess
 import sys
+import tempfile
+import time
 from pathlib import Path
 
 import pytest
@@ -173,3 +177,130 @@ def test_an_interrupted_local_sweep_started_again_skips_what_finished(tmp_path: 
     assert out.returncode == 0, out.stderr[-2000:]
     assert (out.stdout + out.stderr).count("skipping") == 4
     assert {r.info.run_id for r in _runs(uri)} == first
+
+
+RESTART = [
+    "env=cartpole",
+    "controller=hinf_f,ddqn",
+    "network=small",
+    "train.episodes=120",
+    "train.checkpoint_every=10",
+    "train.population=2",
+    "hydra.launcher.n_jobs=2",
+]
+
+
+def _by_member(uri: str) -> dict[tuple[str, str], object]:
+    return {(r.data.tags["controller"], r.data.tags["seed"]): r for r in _runs(uri)}
+
+
+def _has_checkpoint(run: object) -> bool:
+    root = Path(run.info.artifact_uri.removeprefix("file://"))  # type: ignore[attr-defined]
+    return (root / "checkpoint" / "slot-a" / "state.pt").exists()
+
+
+@pytest.mark.slow
+def test_a_killed_sweep_started_again_continues_its_runs(tmp_path: Path) -> None:
+    """A real sweep (joblib launcher, two jobs in parallel: an H∞ population and Double DQN
+    seeds) gets SIGKILL in its whole process group once runs of both jobs have checkpoints;
+    the same command again continues the runs it left RUNNING (no new runs) and the final
+    store equals an uninterrupted sweep's: returns and signal rows of every seed."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"}
+    folders = {name: tmp_path / name for name in ("reference", "killed")}
+
+    def command(folder: Path) -> list[str]:
+        return [
+            sys.executable,
+            "-m",
+            "cdqn.train",
+            "-m",
+            "--config-dir",
+            str(SWEEPS),
+            "--config-name",
+            "smoke",
+            *RESTART,
+            f"hydra.sweep.dir={folder / 'multirun'}",
+        ]
+
+    for folder in folders.values():
+        folder.mkdir()
+    ref = subprocess.run(
+        command(folders["reference"]),
+        cwd=folders["reference"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert ref.returncode == 0, ref.stderr[-3000:]
+    uri = f"sqlite:///{folders['killed'] / 'mlflow.db'}"
+    proc = subprocess.Popen(
+        command(folders["killed"]),
+        cwd=folders["killed"],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    deadline = time.monotonic() + 300
+    try:
+        while proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.2)
+            if not (folders["killed"] / "mlflow.db").exists():
+                continue
+            try:
+                runs = _runs(uri)
+            except Exception:  # the store is being created
+                continue
+            going = {
+                r.data.tags.get("controller")
+                for r in runs
+                if r.info.status == "RUNNING" and _has_checkpoint(r)
+            }
+            if going == {"hinf_f", "ddqn"}:
+                break
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(30)
+    before = _by_member(uri)
+    left = sorted(k for k, r in before.items() if r.info.status != "FINISHED")
+    assert left, "the sweep ended before it could be killed"
+
+    again = subprocess.run(
+        command(folders["killed"]),
+        cwd=folders["killed"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert again.returncode == 0, again.stderr[-3000:]
+    after = _by_member(uri)
+    reference = _by_member(f"sqlite:///{folders['reference'] / 'mlflow.db'}")
+    assert sorted(after) == sorted(reference) and len(after) == 4
+    for key, r in after.items():
+        if key in before:  # continued in the same run, not trained again in a new one
+            assert r.info.run_id == before[key].info.run_id  # type: ignore[attr-defined]
+        assert r.info.status == "FINISHED"
+        client = MlflowClient(uri)
+        other = MlflowClient(f"sqlite:///{folders['reference'] / 'mlflow.db'}")
+        ours = _history(client, r.info.run_id)
+        assert len(ours) == 120 and ours == _history(other, reference[key].info.run_id)
+        assert _steps(client, r.info.run_id).equals(_steps(other, reference[key].info.run_id))
+    resumed = [k for k in left if after[k].data.tags.get("resume_count")]  # type: ignore[attr-defined]
+    assert resumed == [k for k in left if k in before], (left, resumed)
+    print("continued after SIGKILL:", left)
+
+
+def _history(client: MlflowClient, run_id: str) -> list[float]:
+    h = client.get_metric_history(run_id, "episode_return")
+    assert len({m.step for m in h}) == len(h)
+    return [m.value for m in sorted(h, key=lambda m: m.step)]
+
+
+def _steps(client: MlflowClient, run_id: str) -> object:
+    import pandas as pd  # noqa: PLC0415
+
+    with tempfile.TemporaryDirectory() as tmp:
+        return pd.read_parquet(client.download_artifacts(run_id, "signals/steps.parquet", tmp))

@@ -133,3 +133,47 @@ def test_cli_refuses_bad_config(overrides: list[str], expected: str, tmp_path: P
     assert expected in proc.stderr
     assert "Traceback" not in proc.stderr + proc.stdout
     assert not (tmp_path / "m.db").exists()
+
+
+SWEEPS = Path(__file__).resolve().parents[1] / "sweeps"
+
+
+def test_config_dir_sweeps_are_checked_too(capsys: pytest.CaptureFixture[str]):
+    """``--config-dir sweeps --config-name <sweep>``: the sweep config is composed from
+    there, its own swept values (``hydra.sweeper.params``) included, before any job runs."""
+    sweep = ["-m", "--config-dir", str(SWEEPS), "--config-name", "smoke"]
+    preflight([*sweep, "train.episodes=2"])  # a valid sweep passes
+    preflight([f"--config-dir={SWEEPS}", "-cn", "paper", "-m", "controller=h2,hinf"])
+    with pytest.raises(SystemExit) as exc:
+        preflight([*sweep, "controller=hinf,foo"])
+    assert exc.value.code == EXIT_CONFIG
+    assert "controller=foo: unknown controller" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        preflight([*sweep, "network.width=abc"])
+    err = capsys.readouterr().err
+    assert "network.width=abc: Value 'abc' of type 'str' could not be converted" in err
+    # a value the sweep config sweeps itself (env: cartpole,acrobot,mountaincar) with a
+    # setting that breaks only one of them: found before the first job
+    errors = check_overrides(["env.obs_indices=[2,3,5]"], True, "smoke", config_dir=SWEEPS)
+    assert errors and all("obs_indices" in e for e in errors), errors
+    with pytest.raises(SystemExit):
+        preflight(["-m", "--config-dir", str(SWEEPS), "--config-name", "nope"])
+    assert "Cannot find primary config 'nope'" in capsys.readouterr().err
+
+
+def test_cli_refuses_a_bad_config_dir_sweep_before_any_job(tmp_path: Path):
+    args = [
+        "-m",
+        "--config-dir",
+        str(SWEEPS),
+        "--config-name",
+        "smoke",
+        "train.lr=0",
+        f"hydra.sweep.dir={tmp_path / 'multirun'}",
+        f"tracking.uri=sqlite:///{tmp_path}/m.db",
+    ]
+    proc = run_cli("cdqn.train", args, tmp_path)
+    assert proc.returncode == EXIT_CONFIG, proc.stderr[-2000:]
+    assert "train.lr=0.0: the learning rate α must be > 0" in proc.stderr
+    assert "Traceback" not in proc.stderr + proc.stdout
+    assert not (tmp_path / "m.db").exists() and not (tmp_path / "multirun").exists()

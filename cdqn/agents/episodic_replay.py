@@ -9,7 +9,9 @@ times, in temporal order, through the same controlled update (integrator ``x_e``
 controller state continue; the exploration does not move).  Replayed updates write no signal
 rows (those are environment steps); each episode records their number, ``replay_updates``.
 
-Nothing of it survives an episode boundary, so checkpoints need no replay state.
+Nothing of it survives an episode boundary: single runs, which checkpoint at episode
+boundaries, need no replay state; a population checkpoint, taken between two steps, holds
+each member's transitions of the episode in progress.
 """
 
 from __future__ import annotations
@@ -114,6 +116,16 @@ class PopulationTail:
             self.next_obs[idx, j],
             self.terminated[idx, j],
         )
+
+    def restore(self, j: int, tail: Transitions) -> None:
+        """Make ``tail`` member ``j``'s newest transitions (a resumed population, before its
+        first step)."""
+        n = min(len(tail.actions), len(self.obs))
+        idx = (self.pos - n + np.arange(n)) % len(self.obs)
+        self.obs[idx, j], self.actions[idx, j] = tail.obs[-n:], tail.actions[-n:]
+        self.rewards[idx, j], self.next_obs[idx, j] = tail.rewards[-n:], tail.next_obs[-n:]
+        self.terminated[idx, j] = tail.terminated[-n:]
+        self.filled = max(self.filled, n)
 
     def select(self, keep: np.ndarray) -> None:
         self.obs, self.next_obs = self.obs[:, keep], self.next_obs[:, keep]
