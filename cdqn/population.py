@@ -681,6 +681,7 @@ def start_member_run(
         "population": population,
         "population_id": population_id or uuid.uuid4().hex,
         **process_tags(),
+        **setup.tags(),
     }
     rec = Recorder.start(
         uri,

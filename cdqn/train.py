@@ -159,6 +159,7 @@ def run(cfg: DictConfig, progress: bool = True) -> RunResult:
         "design_source": job.setup.source,
         "config_hash": config_hash(cfg),
         **process_tags(),
+        **job.setup.tags(),
     }
     try:
         recorder = Recorder.start(

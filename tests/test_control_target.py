@@ -132,3 +132,19 @@ def test_scheduled_h2_rho_cap_lowers_the_discount_only_where_the_ratio_is_large(
     rho = pts[:, 1] / pts[:, 0]
     assert np.all(g_eff * rho <= 0.98 + 1e-9)
     assert np.allclose(g_eff[rho <= 0.98 / 0.99], 0.99)
+
+
+def test_every_run_records_what_its_design_keeps(tracking_uri: str) -> None:
+    from mlflow.tracking import MlflowClient
+
+    from cdqn.train import run
+
+    cfg = compose_config(["controller=hinf_f", *FAST, *TARGET, "network.width=16",
+                          "train.episodes=1", "train.progress=false", "tracking.log_model=false",
+                          f"tracking.uri={tracking_uri}"])  # fmt: skip
+    result = run(cfg, progress=False)
+    tags = MlflowClient(tracking_uri).get_run(result.run_id).data.tags
+    assert -2.0 <= float(tags["design_gamma_eff"]) <= -1.0
+    assert 0.5 <= float(tags["design_step_scale"]) <= 0.9
+    assert float(tags["design_worst_pole"]) < 0
+    assert 0 < float(tags["design_max_step_gain"]) < 2
