@@ -77,7 +77,8 @@ class DDQNPopulation:
         self.rngs = list(rngs)
         self.explorers = [EpsilonGreedy(train, spec.n_actions, rng) for rng in self.rngs]
         self.replay = StackedReplay(k, cfg.buffer_size, spec.n_obs)
-        self.hyper = np.array([train.lr, train.discount])
+        discount = train.discount if cfg.discount is None else cfg.discount
+        self.hyper = np.array([train.lr, discount])
         self.schedule = np.array([cfg.learning_starts, cfg.train_freq, cfg.target_update])
         self.steps = np.zeros(k, dtype=np.int64)
         self.last_loss = np.full(k, np.nan)

@@ -124,7 +124,8 @@ def _population(overrides: list[str], seeds: list[int]) -> tuple[list[Member], D
 @pytest.mark.parametrize(
     ("env", "extra"),
     [("cartpole", []), ("acrobot", ["train.episodes=2"]),
-     ("mountaincar", ["train.episodes=2", "network.dtype=float32"])],
+     ("mountaincar", ["train.episodes=2", "network.dtype=float32"]),
+     ("cartpole", ["controller.discount=0.9"])],
 )  # fmt: skip
 def test_ddqn_population_members_step_exactly_as_single_runs(env: str, extra: list[str]) -> None:
     """Returns, every per-step signal (Q1, Q2, Θ1, Θ2, loss) and the final state (networks,
@@ -209,3 +210,14 @@ def test_ddqn_population_member_is_recorded_as_its_single_run(tracking_uri: str)
         assert all(np.array_equal(ma[k], mb[k], equal_nan=True) for k in ma)  # NaN: no loss yet
         assert _artifacts(client, single.run_id) == _artifacts(client, member.run_id)
         assert single.final_score == member.final_score
+
+
+def test_controller_discount_sets_the_double_dqn_target_discount() -> None:
+    """``controller.discount`` (γ of Double DQN's target) in single runs and populations;
+    null leaves ``train.discount``."""
+    for extra, gamma in (([], 1.0), (["controller.discount=0.99"], 0.99)):
+        conf = OmegaConf.to_object(compose_config([*BASE, *extra]))
+        job = build(conf, make_env(conf.env))
+        setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
+        agent, _ = build_population(conf, setup, [0, 1])
+        assert job.agent.discount == agent.hyper[1] == gamma
