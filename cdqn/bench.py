@@ -26,9 +26,9 @@ second against the single run's steps per second of the same controller (the thr
 ``K`` sequential runs); its ``speedup`` is the ratio.
 
 The estimate section measures the throughput of every environment and controller of the
-paper's sweep (populations of 10 for the controlled agents, Double DQN one seed after
-another), adds the measured costs of opening and closing a run and of writing metrics and
-signals, and schedules the sweep's 12 jobs on ``--workers`` parallel workers in launch order
+paper's sweep (populations of 10, Double DQN's included), adds the measured costs of opening
+and closing a run and of writing metrics and signals, and schedules the sweep's 12 jobs on
+``--workers`` parallel workers in launch order
 (Hydra's joblib launcher):
 
     wall ≈ makespan over jobs of  Σ_seeds (episodes × L_env × (1 / steps_per_s + signal write)
@@ -336,6 +336,12 @@ def _population_window(
     return Throughput(member_steps, seconds, episodes, sum(flushes)), (t_open + sum(ended)) / k
 
 
+def _pop_warmup(controller: str, warmup: int, k: int) -> int:
+    """Untimed population steps before a population's timed window: ``warmup`` member-steps
+    in all, but Double DQN's members each take ``warmup`` steps (past ``learning_starts``)."""
+    return warmup if controller == "ddqn" else warmup // k + 1
+
+
 def _median(values: list[float]) -> float:
     finite = [v for v in values if np.isfinite(v)]
     return statistics.median(finite) if finite else float("nan")
@@ -372,12 +378,9 @@ def estimate_paper_sweep(
         rates[env] = {}
         for ctrl in PAPER_CONTROLLERS:
             cfg = compose_config(_overrides(env, ctrl, width, uri))
-            if ctrl == "ddqn":
-                measured = measure_single(cfg, uri, steps, warmup)
-            else:
-                pop = measure_population(cfg, uri, k, steps // k + 1, warmup // k + 1)
-                measured = pop.member_steps
-                overhead.append(pop.run_overhead_s)
+            pop = measure_population(cfg, uri, k, steps // k + 1, _pop_warmup(ctrl, warmup, k))
+            measured = pop.member_steps
+            overhead.append(pop.run_overhead_s)
             rates[env][ctrl] = measured.steps_per_s
             if measured.episodes and not np.isfinite(metric_s):
                 metric.append(measured.metric_write_s / measured.episodes)
@@ -480,7 +483,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         uri = f"sqlite:///{Path(tmp) / 'bench.db'}"
         floor: list[float] = []
         single: dict[str, list[float]] = {c: [] for c in controllers}
-        pop: dict[str, list[float]] = {c: [] for c in controllers if c != "ddqn"}
+        pop: dict[str, list[float]] = {c: [] for c in controllers}
         cfgs = {c: compose_config(_overrides(args.env, c, args.width, uri)) for c in controllers}
         base = (
             cfgs[controllers[0]]
@@ -500,7 +503,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             for c in controllers:
                 single[c].append(keep(measure_single(cfgs[c], uri, args.steps, args.warmup)))
                 if k > 1 and c in pop:
-                    p = measure_population(cfgs[c], uri, k, args.steps, args.warmup // k + 1)
+                    p = measure_population(
+                        cfgs[c], uri, k, args.steps, _pop_warmup(c, args.warmup, k)
+                    )
                     pop[c].append(keep(p.member_steps))
         floor_sps = _median(floor)
         result: dict[str, Any] = {
@@ -577,8 +582,7 @@ def format_report(r: dict[str, Any]) -> str:
         lines += [
             "",
             f"sweep: 3 envs x 4 controllers x {PAPER_SEEDS} seeds x {e['episodes']} episodes, "
-            f"width {r['width']}, populations of {PAPER_SEEDS} (Double DQN: one seed after "
-            f"another), {e['workers']} workers",
+            f"width {r['width']}, populations of {PAPER_SEEDS}, {e['workers']} workers",
             f"{'steps/s':<14}" + "".join(f"{c:>10}" for c in PAPER_CONTROLLERS),
         ]
         for env, row in e["steps_per_s"].items():

@@ -242,6 +242,8 @@ class ControllerConfig:
     """DDQN: environment steps between updates."""
     target_update: int = 500
     """DDQN: environment steps between target-network copies."""
+    discount: float | None = None
+    """DDQN: γ of its TD target; null: train.discount (docs/ddqn.md, γ and the time limit)."""
 
 
 @dataclass
@@ -428,6 +430,10 @@ def validate(cfg: Config) -> None:
         (
             cfg.controller.target_update > 0 and cfg.controller.train_freq > 0,
             "controller.target_update and controller.train_freq must be > 0",
+        ),
+        (
+            cfg.controller.discount is None or 0 < cfg.controller.discount <= 1,
+            f"controller.discount={cfg.controller.discount}: γ must lie in (0, 1] or be null",
         ),
         (
             len(cfg.weights.h2.w_x) == 3 and all(w >= 0 for w in cfg.weights.h2.w_x),

@@ -15,9 +15,9 @@ operation acts on each member's row alone, through the kernels a single run uses
 numbers are bit-identical (``tests/test_population.py``).
 
 :class:`ControlledPopulation` is the batched :class:`cdqn.agents.ControlledAgent` (fast path)
-for ``none``, ``h2``, ``hinf`` and ``hinf_f``.  Double DQN and ``train.fast_path=false`` fall
-back to training the members one after another in the same process (Double DQN's cost is
-its minibatch step, which batching the seeds would not make cheaper).
+for ``none``, ``h2``, ``hinf`` and ``hinf_f``, :class:`cdqn.ddqn_population.DDQNPopulation`
+the batched :class:`cdqn.agents.DDQNAgent`.  ``train.fast_path=false`` falls back to
+training the members one after another in the same process.
 
 A population checkpoints as a whole (:mod:`cdqn.population_checkpoint`): each time its
 slowest member has completed another ``train.checkpoint_every`` episodes, and when
@@ -50,6 +50,7 @@ from cdqn.agents.episodic_replay import PopulationTail, Transitions, qualifies
 from cdqn.checkpoint import CheckpointStore
 from cdqn.config import Config, ReplayConfig, resolve_tracking_uri, validate
 from cdqn.control.factory import ControllerSetup, make_controller
+from cdqn.ddqn_population import DDQNPopulation
 from cdqn.envs import env_sizes, make_env
 from cdqn.interrupt import GracefulStop
 from cdqn.network import NetworkSpec, QNetwork, save_network
@@ -334,7 +335,7 @@ def train_population(
 
 def build_population(
     conf: Config, setup: ControllerSetup, seeds: list[int]
-) -> tuple[ControlledPopulation, VectorEnv]:
+) -> tuple[ControlledPopulation | DDQNPopulation, VectorEnv]:
     """Agent and environments of a population, with the calls of ``cdqn.train.build`` per
     member (network initialised under ``torch.manual_seed(seed)``, exploration from
     ``np.random.default_rng(seed)``)."""
@@ -345,6 +346,8 @@ def build_population(
         torch.manual_seed(seed)
         rngs.append(np.random.default_rng(seed))
         nets.append(QNetwork(NetworkSpec(n_obs, n_actions, conf.network.width, conf.network.dtype)))
+    if conf.controller.name == "ddqn":
+        return DDQNPopulation(nets, conf.controller, conf.train, rngs), make_vector_env(envs)
     agent = ControlledPopulation(
         nets, setup.controller, conf.train, conf.controller.reset_integrator, rngs
     )
@@ -352,9 +355,10 @@ def build_population(
 
 
 def batchable(conf: Config) -> bool:
-    """Whether :class:`ControlledPopulation` can train this configuration (its controllers
-    are the runtime controllers :class:`cdqn.population_step.ControllerArrays` knows)."""
-    return conf.controller.name != "ddqn" and conf.train.fast_path
+    """Whether the members train as one batch: :class:`ControlledPopulation` (its
+    controllers are the runtime controllers :class:`cdqn.population_step.ControllerArrays`
+    knows) or :class:`cdqn.ddqn_population.DDQNPopulation`, both on the fast path."""
+    return conf.train.fast_path
 
 
 @dataclass
@@ -535,7 +539,7 @@ def train_members(
                 should_stop=stop.requested,
                 on_checkpoint=on_checkpoint if venv.checkpointable else None,
                 checkpoint_every=conf.train.checkpoint_every,
-                replay=conf.weights.replay,
+                replay=conf.weights.replay if conf.controller.name != "ddqn" else None,
             )
         except TrackingOutage as err:  # runs cannot be closed; the store has the checkpoints
             open_ids = [m.recorder.run_id for m in members

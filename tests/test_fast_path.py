@@ -210,4 +210,6 @@ def test_benchmark_reports_the_documented_fields(capsys: pytest.CaptureFixture[s
     for entry in out["controllers"].values():
         assert entry["steps_per_s"] > 0 and entry["ratio_to_floor"] > 0
     assert out["population"]["k"] == 2 and out["population"]["speedup"] > 0
+    assert set(out["population"]["by_controller"]) == {"none", "hinf_f", "ddqn"}
+    assert out["population"]["by_controller"]["ddqn"]["speedup"] > 0
     assert bench.makespan([3.0, 1.0, 1.0, 1.0], 2) == 3.0

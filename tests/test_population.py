@@ -254,7 +254,7 @@ def test_population_member_is_recorded_as_its_single_run(tracking_uri: str) -> N
         assert single.final_score == member.final_score
 
 
-def test_double_dqn_population_trains_its_seeds_one_after_another(tracking_uri: str) -> None:
+def test_double_dqn_population_records_each_seed_as_its_run(tracking_uri: str) -> None:
     cfg = compose_config(
         [
             "controller=ddqn",

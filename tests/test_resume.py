@@ -268,21 +268,30 @@ def test_sigterm_to_population_process_then_resume_equals_uninterrupted(tmp_path
 
 
 @pytest.mark.parametrize(
-    ("seed", "extra"),
+    ("seed", "settings"),
     [
-        (11, []),
+        (11, CONTROLLED),
         # episodic replay of every episode: a mid-episode checkpoint holds the episode so far
-        (21, ["weights.replay.repeats=2", "weights.replay.last=null", "weights.replay.when=any"]),
+        (
+            21,
+            [
+                *CONTROLLED,
+                "weights.replay.repeats=2",
+                "weights.replay.last=null",
+                "weights.replay.when=any",
+            ],
+        ),
+        (31, DDQN),  # a Double DQN population: buffers, target networks, cached passes
     ],
 )
 def test_population_resumes_from_a_periodic_checkpoint(
-    store: str, signal_at: Callable[..., None], seed: int, extra: list[str]
+    store: str, signal_at: Callable[..., None], seed: int, settings: list[str]
 ) -> None:
     """Two signals stop a population at once (mid-step, no checkpoint then): resume goes
     back to the last periodic checkpoint, whose members are mid-episode, and still equals
     an uninterrupted population."""
     client = MlflowClient(store)
-    base = [*CONTROLLED, *extra, "train.population=3", f"seed={seed}", f"tracking.uri={store}"]
+    base = [*settings, "train.population=3", f"seed={seed}", f"tracking.uri={store}"]
     signal_at(7, signal.SIGINT, signal.SIGINT)
     with pytest.raises(KeyboardInterrupt):
         run(compose_config([*base, "train.checkpoint_every=2"]), progress=False)

@@ -38,7 +38,7 @@ class DDQNAgent:
         self.use_fast_path = train.fast_path
         self.lr = train.lr
         self.cfg = cfg
-        self.discount = train.discount
+        self.discount = train.discount if cfg.discount is None else cfg.discount
         self.explorer = EpsilonGreedy(train, net.spec.n_actions, rng)
         self.buffer = ReplayBuffer(cfg.buffer_size, net.spec.n_obs, rng)
         self.optimizer = torch.optim.SGD(net.parameters(), lr=train.lr)

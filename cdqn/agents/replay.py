@@ -67,3 +67,55 @@ class ReplayBuffer:
         self.terminated[:n] = state["terminated"]
         self.size, self.pos = n, state["pos"]
         self.rng.bit_generator.state = state["rng"]
+
+
+class StackedReplay:
+    """``K`` :class:`ReplayBuffer` ring buffers in stacked arrays (a Double DQN population):
+    ``obs``, ``next_obs`` ``(K, capacity, n_obs)``, ``actions``, ``rewards``, ``terminated``
+    ``(K, capacity)``, ``size`` and ``pos`` ``(K,)``.  Member ``k`` holds exactly what the
+    single run's buffer holds, in the same slots; its minibatch indices are drawn from its
+    own generator as :meth:`ReplayBuffer.sample` draws them (``rng.integers(size, size=B)``).
+    Only ``terminated`` is stored: a transition cut by the time limit bootstraps.
+    """
+
+    def __init__(self, k: int, capacity: int, n_obs: int) -> None:
+        self.capacity = capacity
+        self.obs = np.zeros((k, capacity, n_obs))
+        self.next_obs = np.zeros((k, capacity, n_obs))
+        self.actions = np.zeros((k, capacity), dtype=np.int64)
+        self.rewards = np.zeros((k, capacity))
+        self.terminated = np.zeros((k, capacity))
+        self.size = np.zeros(k, dtype=np.int64)
+        self.pos = np.zeros(k, dtype=np.int64)
+
+    def select(self, keep: np.ndarray) -> None:
+        """Keep only the members ``keep`` (indices, in that order)."""
+        self.obs, self.next_obs = self.obs[keep], self.next_obs[keep]
+        self.actions, self.rewards = self.actions[keep], self.rewards[keep]
+        self.terminated, self.size, self.pos = (
+            self.terminated[keep],
+            self.size[keep],
+            self.pos[keep],
+        )
+
+    def state_dict(self, k: int, rng: np.random.Generator) -> dict[str, Any]:
+        """Member ``k``'s buffer as :meth:`ReplayBuffer.state_dict` writes it."""
+        n = int(self.size[k])
+        return {
+            "obs": self.obs[k, :n].copy(),
+            "next_obs": self.next_obs[k, :n].copy(),
+            "actions": self.actions[k, :n].copy(),
+            "rewards": self.rewards[k, :n].copy(),
+            "terminated": self.terminated[k, :n].copy(),
+            "pos": int(self.pos[k]),
+            "rng": rng.bit_generator.state,
+        }
+
+    def load_state_dict(self, k: int, state: dict[str, Any], rng: np.random.Generator) -> None:
+        """Inverse of :meth:`state_dict` (also takes a :class:`ReplayBuffer`'s)."""
+        n = len(state["actions"])
+        self.obs[k, :n], self.next_obs[k, :n] = state["obs"], state["next_obs"]
+        self.actions[k, :n], self.rewards[k, :n] = state["actions"], state["rewards"]
+        self.terminated[k, :n] = state["terminated"]
+        self.size[k], self.pos[k] = n, state["pos"]
+        rng.bit_generator.state = state["rng"]

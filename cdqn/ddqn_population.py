@@ -1,0 +1,337 @@
+"""The Double DQN agent of a population: ``K`` members' steps as two compiled calls.
+
+:class:`DDQNPopulation` is :class:`cdqn.agents.DDQNAgent` (fast path) for ``K`` members at
+once, with the interface of :class:`cdqn.population_step.ControlledPopulation` that
+:func:`cdqn.population.train_population` drives.  Per step and member it runs exactly the
+single agent's algorithm:
+
+1. act: ε-greedy on ``Q(s, ·)`` (the member's own :class:`EpsilonGreedy`);
+2. record: ``Q(s', ·)``, ``a' = argmax``, ``Q1 = Q(s, a)``, ``Q2 = Q(s', a')``, Θ1, Θ2 and
+   the last minibatch loss; store ``(s, a, r, s', terminated)`` in the member's buffer;
+3. learn: every ``train_freq`` steps once ``learning_starts`` transitions are stored, one
+   minibatch step on
+
+   .. math::  \\mathcal L = \\tfrac12 \\sum_i \\big(r_i + \\gamma (1 - d_i)\\,
+              \\bar Q(s'_i, \\arg\\max_{a} Q(s'_i, a)) - Q(s_i, a_i)\\big)^2,
+
+   ``d_i`` the transition's ``terminated`` (a transition cut by the time limit
+   bootstraps); every ``target_update`` steps ``Q̄ ← Q``.
+
+Steps 1–2 are one compiled loop over the members built from the row functions a single run
+uses (:func:`cdqn.network.forward_row`, :func:`cdqn.network.td_row`), step 3 one compiled
+loop that gathers each member's minibatch from its buffer and calls the single run's
+minibatch kernel on the member's slice of the stacked networks.  Between them only the
+minibatch indices are drawn, by each member's generator as the single run draws them
+(exploration and sampling share it, so neither can be drawn ahead).  So each member
+computes the numbers of the single run of its seed, bit for bit
+(``tests/test_ddqn_population.py``); what the population saves is the per-step Python of
+``K`` runs.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from numba import njit
+
+from cdqn.agents.base import EpsilonGreedy
+from cdqn.agents.replay import StackedReplay
+from cdqn.config import ControllerConfig, TrainConfig
+from cdqn.network import (
+    QNetwork,
+    StackedTwoLayer,
+    _double_dqn_kernel,
+    forward_row,
+    td_row,
+)
+from cdqn.population_step import CHECK, DONE
+from cdqn.vector_env import VectorStep
+
+
+class _NoController:
+    """What the population loop asks of a controller: Double DQN has no state ``x_c``."""
+
+    def state(self, i: int) -> None:
+        return None
+
+
+class DDQNPopulation:
+    """:class:`cdqn.agents.DDQNAgent` (fast path) for ``K`` members at once (module
+    docstring).  ``nets`` are the members' initial networks (also their target networks),
+    ``rngs`` their generators (exploration and minibatch sampling, as in a single run)."""
+
+    def __init__(
+        self,
+        nets: list[QNetwork],
+        cfg: ControllerConfig,
+        train: TrainConfig,
+        rngs: list[np.random.Generator],
+    ) -> None:
+        self.net = StackedTwoLayer.from_networks(nets)
+        self.target = StackedTwoLayer.from_networks(nets)
+        self.spec = spec = nets[0].spec
+        k, dtype = len(nets), self.net.dtype
+        self.cfg = cfg
+        self.rngs = list(rngs)
+        self.explorers = [EpsilonGreedy(train, spec.n_actions, rng) for rng in self.rngs]
+        self.replay = StackedReplay(k, cfg.buffer_size, spec.n_obs)
+        discount = train.discount if cfg.discount is None else cfg.discount
+        self.hyper = np.array([train.lr, discount])
+        self.schedule = np.array([cfg.learning_starts, cfg.train_freq, cfg.target_update])
+        self.steps = np.zeros(k, dtype=np.int64)
+        self.last_loss = np.full(k, np.nan)
+        self.learn = np.zeros(k, dtype=np.bool_)
+        # Each member's forward pass at s (the act's) and s as the buffer stores it.
+        self.obs = np.zeros((k, spec.n_obs))
+        self.x = np.empty((k, spec.n_obs), dtype)
+        self.p = np.empty((k, spec.width), dtype)
+        self.q = np.empty((k, spec.n_actions), dtype)
+        # One member's pass at s', ∂Q_a/∂b_1 and Θ1, Θ2 in the network's dtype (as the single
+        # run's arrays hold them).
+        self.scratch = (
+            np.empty(spec.n_obs, dtype),
+            np.empty(spec.width, dtype),
+            np.empty(spec.n_actions, dtype),
+            np.empty(spec.width, dtype),
+            np.empty(2, dtype),
+        )
+        b = cfg.batch_size
+        self.idx = np.zeros((k, b), dtype=np.int64)
+        # One minibatch as the single run hands it to the kernel: (s, s') pairs, actions,
+        # rewards and terminations, in the network's dtype.
+        self.batch = (
+            np.empty((b, 2, spec.n_obs), dtype),
+            np.empty(b, dtype=np.int64),
+            np.empty(b, dtype),
+            np.empty(b, dtype),
+        )
+        self.plan = np.empty(k, dtype=np.int64)
+        self.actions = np.empty(k, dtype=np.int64)
+        self.flags = np.zeros(k, dtype=np.int8)
+        self.loss_seen = np.zeros(k, dtype=np.bool_)
+        self.controller = _NoController()
+
+    def __len__(self) -> int:
+        return len(self.steps)
+
+    @property
+    def epsilon(self) -> np.ndarray:
+        return np.array([e.epsilon for e in self.explorers])
+
+    def start_episode(self, i: int) -> None:
+        pass
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        """ε-greedy actions ``(K,)`` (the array is reused by the next call)."""
+        for k, explorer in enumerate(self.explorers):
+            a = explorer.explore()
+            self.plan[k] = -1 if a is None else a
+        n = self.net
+        self.obs[:] = obs
+        _act_kernel(n.w1t, n.b1, n.w2, n.b2, obs, self.x, self.p, self.q, self.plan, self.actions)
+        return self.actions
+
+    def update(
+        self,
+        actions: np.ndarray,
+        step: VectorStep,
+        ep: np.ndarray,
+        t: np.ndarray,
+        ret: np.ndarray,
+        rows: np.ndarray,
+        q_limit: float,
+    ) -> int:
+        """One Double DQN step of every member on the environments' ``step``: signal rows
+        into ``rows``, ``ret`` and ``t`` advanced, :attr:`flags` and :attr:`loss_seen` as in
+        :meth:`cdqn.population_step.ControlledPopulation.update`.  Returns the number of
+        flagged members."""
+        n, r = self.net, self.replay
+        _record_kernel(
+            n.w1t, n.b1, n.w2, n.b2, self.x, self.p, self.q, *self.scratch, actions,
+            step.reward, step.obs, step.terminated, self.obs, r.obs, r.next_obs, r.actions,
+            r.rewards, r.terminated, r.size, r.pos, self.steps, self.schedule, self.learn,
+            self.last_loss, ep, t, ret, rows,
+        )  # fmt: skip
+        for k in np.flatnonzero(self.learn):  # ReplayBuffer.sample's draw
+            self.idx[k] = self.rngs[k].integers(r.size[k], size=self.cfg.batch_size)
+        tg = self.target
+        return _learn_kernel(
+            n.w1t, n.b1, n.w2, n.b2, tg.w1t, tg.b1, tg.w2, tg.b2, r.obs, r.next_obs,
+            r.actions, r.rewards, r.terminated, self.idx, *self.batch, self.hyper,
+            self.steps, self.schedule, self.learn, self.last_loss, step.terminated,
+            step.truncated, rows, q_limit, self.flags, self.loss_seen,
+        )  # fmt: skip
+
+    def select(self, keep: np.ndarray) -> None:
+        """Keep only the members ``keep`` (indices, in that order)."""
+        self.net.select(keep)
+        self.target.select(keep)
+        self.replay.select(keep)
+        self.rngs = [self.rngs[i] for i in keep]
+        self.explorers = [self.explorers[i] for i in keep]
+        self.steps, self.last_loss, self.learn = (
+            self.steps[keep],
+            self.last_loss[keep],
+            self.learn[keep],
+        )
+        self.obs, self.x, self.p, self.q = self.obs[keep], self.x[keep], self.p[keep], self.q[keep]
+        self.idx, self.plan, self.actions = self.idx[keep], self.plan[keep], self.actions[keep]
+        self.flags, self.loss_seen = self.flags[keep], self.loss_seen[keep]
+
+    def network(self, i: int) -> QNetwork:
+        """Member ``i``'s online network as a :class:`QNetwork`."""
+        net = QNetwork(self.spec)
+        self.net.copy_to(i, net)
+        return net
+
+    def member_state(self, i: int) -> dict[str, Any]:
+        """Member ``i``'s state as :meth:`cdqn.agents.DDQNAgent.state_dict` writes it
+        (networks, buffer with the generator's state, ε, step counter, last loss)."""
+        target = QNetwork(self.spec)
+        self.target.copy_to(i, target)
+        return {
+            "net": self.network(i).state_dict(),
+            "target": target.state_dict(),
+            "epsilon": self.explorers[i].epsilon,
+            "steps": int(self.steps[i]),
+            "last_loss": float(self.last_loss[i]),
+            "buffer": self.replay.state_dict(i, self.rngs[i]),
+        }
+
+    def load_member_state(self, i: int, state: dict[str, Any]) -> None:
+        """Inverse of :meth:`member_state` (also takes a :class:`DDQNAgent`'s state)."""
+        for stack, key in ((self.net, "net"), (self.target, "target")):
+            s = state[key]
+            stack.w1t[i] = s["hidden.weight"].numpy().T
+            stack.b1[i] = s["hidden.bias"].numpy()
+            stack.w2[i] = s["out.weight"].numpy()
+            stack.b2[i] = s["out.bias"].numpy()
+        self.explorers[i].epsilon = state["epsilon"]
+        self.steps[i] = state["steps"]
+        self.last_loss[i] = state.get("last_loss", math.nan)
+        self.replay.load_state_dict(i, state["buffer"], self.rngs[i])
+
+    def state_dict(self, i: int) -> dict[str, Any]:
+        """Member ``i``'s state between two population steps (the population checkpoint
+        protocol, :mod:`cdqn.population_checkpoint`): :meth:`member_state`, its cached forward
+        pass and its loop flag."""
+        return {
+            **self.member_state(i),
+            "pass": (self.x[i].copy(), self.p[i].copy(), self.q[i].copy()),
+            "loss_seen": bool(self.loss_seen[i]),
+        }
+
+    def load_state_dict(self, i: int, state: dict[str, Any]) -> None:
+        """Inverse of :meth:`state_dict`, into member ``i`` of a freshly built population."""
+        self.load_member_state(i, state)
+        self.x[i], self.p[i], self.q[i] = state["pass"]
+        self.loss_seen[i] = state["loss_seen"]
+
+    def population_state(self) -> dict[str, Any]:
+        """Every member's state (:meth:`member_state`) and the loop's flags."""
+        return {
+            "members": [self.member_state(i) for i in range(len(self))],
+            "loss_seen": self.loss_seen.copy(),
+        }
+
+    def load_population_state(self, state: dict[str, Any]) -> None:
+        """Inverse of :meth:`population_state`, on a population of as many members."""
+        if len(state["members"]) != len(self):
+            raise ValueError(
+                f"state of {len(state['members'])} members for a population of {len(self)}"
+            )
+        for i, s in enumerate(state["members"]):
+            self.load_member_state(i, s)
+        self.loss_seen[:] = state["loss_seen"]
+
+
+@njit(cache=True)
+def _act_kernel(w1t, b1, w2, b2, obs, x, p, q, plan, actions):  # noqa: ANN001, ANN202
+    """Per member: the forward pass at ``obs`` (kept in ``x, p, q`` for the update), then the
+    planned random action or ``argmax Q(obs, ·)``."""
+    for k in range(obs.shape[0]):
+        for i in range(obs.shape[1]):
+            x[k, i] = obs[k, i]
+        forward_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], q[k])
+        actions[k] = plan[k] if plan[k] >= 0 else np.argmax(q[k])
+
+
+@njit(cache=True)
+def _record_kernel(w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, theta, actions, reward, next_obs,
+                   terminated, obs, buf_obs, buf_next, buf_actions, buf_rewards,
+                   buf_terminated, size, pos, steps, schedule, learn, last_loss, ep, t, ret,
+                   rows):  # fmt: skip  # noqa: ANN001, ANN202
+    """Per member, in the order of :meth:`cdqn.agents.DDQNAgent.update`: the pass at s',
+    Q1, Q2, Θ1, Θ2 and the signal row (with the last loss), the transition into the buffer,
+    the step count and whether the member learns on this step."""
+    learning_starts, train_freq = schedule[0], schedule[1]
+    for k in range(actions.shape[0]):
+        for i in range(x2.shape[0]):
+            x2[i] = next_obs[k, i]
+        forward_row(w1t[k], b1[k], w2[k], b2[k], x2, p2, q2s)
+        a, b = actions[k], np.argmax(q2s)
+        q1, q2 = float(q[k, a]), float(q2s[b])
+        theta[0], theta[1] = td_row(w2[k], x[k], p[k], x2, p2, a, b, g)
+
+        row = rows[k]
+        row[0], row[1], row[2], row[3], row[4] = ep[k], t[k], reward[k], q1, q2
+        row[5], row[6], row[7], row[8], row[9] = 0.0, 0.0, theta[0], theta[1], last_loss[k]
+        ret[k] += reward[k]
+        t[k] += 1
+
+        j = pos[k]  # ReplayBuffer.add
+        for i in range(x2.shape[0]):
+            buf_obs[k, j, i] = obs[k, i]
+            buf_next[k, j, i] = next_obs[k, i]
+        buf_actions[k, j], buf_rewards[k, j] = a, reward[k]
+        buf_terminated[k, j] = 1.0 if terminated[k] else 0.0
+        pos[k] = (j + 1) % buf_obs.shape[1]
+        size[k] = min(size[k] + 1, buf_obs.shape[1])
+        steps[k] += 1
+        learn[k] = steps[k] >= learning_starts and steps[k] % train_freq == 0
+
+
+@njit(cache=True)
+def _learn_kernel(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, buf_obs, buf_next, buf_actions,
+                  buf_rewards, buf_terminated, idx, pairs, b_actions, b_rewards, b_terminated,
+                  hyper, steps, schedule, learn, last_loss, terminated, truncated, rows,
+                  q_limit, flags, loss_seen):  # fmt: skip  # noqa: ANN001, ANN202
+    """Per member: the minibatch step of the learning members (their minibatch gathered as
+    :meth:`cdqn.agents.replay.ReplayBuffer.sample` and :func:`cdqn.network.double_dqn_step`
+    hand it over, then the single run's kernel), the target copy every ``target_update``
+    steps, and the flags of the population loop."""
+    lr, discount, target_update = hyper[0], hyper[1], schedule[2]
+    flagged = 0
+    for k in range(steps.shape[0]):
+        if learn[k]:
+            for i in range(idx.shape[1]):
+                j = idx[k, i]
+                for m in range(buf_obs.shape[2]):
+                    pairs[i, 0, m] = buf_obs[k, j, m]
+                    pairs[i, 1, m] = buf_next[k, j, m]
+                b_actions[i] = buf_actions[k, j]
+                b_rewards[i] = buf_rewards[k, j]
+                b_terminated[i] = buf_terminated[k, j]
+            loss = _double_dqn_kernel(w1t[k], b1[k], w2[k], b2[k], tw1t[k], tb1[k], tw2[k],
+                                      tb2[k], pairs, b_actions, b_rewards, b_terminated,
+                                      discount, lr)  # fmt: skip
+            last_loss[k] = float(loss)
+            rows[k, 9] = last_loss[k]
+        if steps[k] % target_update == 0:
+            tw1t[k][:] = w1t[k]
+            tb1[k][:] = b1[k]
+            tw2[k][:] = w2[k]
+            tb2[k][:] = b2[k]
+        loss = rows[k, 9]
+        if not (math.isfinite(loss) and max(abs(rows[k, 3]), abs(rows[k, 4])) <= q_limit):
+            flags[k] = CHECK
+        elif terminated[k] or truncated[k]:
+            flags[k] = DONE
+            loss_seen[k] = True
+        else:
+            flags[k] = 0
+            loss_seen[k] = True
+        flagged += flags[k] != 0
+    return flagged
