@@ -19,6 +19,8 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: make the repository root importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import pandas as pd  # noqa: E402
+
 from analysis.cli import add_store_arguments, note, open_store, select_runs  # noqa: E402
 
 
@@ -28,8 +30,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_store_arguments(parser)
     parser.add_argument("--out", type=Path, default=Path("figures"), help="output folder")
-    parser.add_argument("--env", default="cartpole", help="environment of single-run figures")
-    parser.add_argument("--controller", default="hinf", help="controller of single-run figures")
+    parser.add_argument(
+        "--env", default=None, help="environment of single-run figures (default: cartpole)"
+    )
+    parser.add_argument(
+        "--controller", default=None, help="controller of single-run figures (default: hinf)"
+    )
     parser.add_argument("--seed", type=int, default=None, help="seed (default: the lowest)")
     parser.add_argument(
         "--episode", type=int, default=None, help="episode (from 1) of the one-episode figures"
@@ -49,20 +55,39 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def pick(runs: pd.DataFrame, column: str, given: str | None, default: str, where: str) -> str:
+    """The ``--env`` / ``--controller`` of the single-run figures: the one given, which the
+    runs must have (else exit 2), or ``default`` if present, else the first present."""
+    present = sorted(str(v) for v in runs[column].dropna().unique())
+    if given is None:
+        return default if default in present or not present else present[0]
+    if given not in present:
+        note(
+            f"error: --{column} {given}: no {column} of that name among the runs in {where}; "
+            f"present: {', '.join(present) or 'none'}"
+        )
+        raise SystemExit(2)
+    return given
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     start = time.perf_counter()
     store = open_store(args)
+
+    runs = select_runs(store, args.where)
+    env = pick(runs, "env", args.env, "cartpole", store.describe())
+    controller = pick(runs, "controller", args.controller, "hinf", store.describe())
 
     from analysis import figures as figs  # plotting imports only when there is something to plot
 
     figs.apply_theme()
     ctx = figs.FigureContext(
         store,
-        select_runs(store),
+        runs,
         figs.Selection(
-            env=args.env,
-            controller=args.controller,
+            env=env,
+            controller=controller,
             seed=args.seed,
             episode=args.episode,
             window=args.window,

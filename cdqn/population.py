@@ -28,6 +28,7 @@ import copy
 import logging
 import math
 import tempfile
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,6 +39,7 @@ from omegaconf import DictConfig, OmegaConf, read_write
 from tqdm.auto import tqdm
 
 from cdqn.agents.base import StepRecord
+from cdqn.checkpoint import ROOT as CHECKPOINT_ROOT
 from cdqn.config import Config, resolve_tracking_uri, validate
 from cdqn.control.factory import ControllerSetup, make_controller
 from cdqn.envs import env_sizes, make_env
@@ -248,7 +250,13 @@ def build_population(
 def batchable(conf: Config) -> bool:
     """Whether :class:`ControlledPopulation` can train this configuration (its controllers
     are the runtime controllers :class:`cdqn.population_step.ControllerArrays` knows)."""
-    return conf.controller.name != "ddqn" and conf.train.fast_path
+    ctrl = conf.controller
+    measured = (  # each seed's design is built on its own network's box (cdqn.ntk_bounds)
+        ctrl.synthesis.ntk_bounds == "measured"
+        and ctrl.design == "synthesize"
+        and ctrl.name in ("hinf", "hinf_f")
+    )
+    return ctrl.name != "ddqn" and conf.train.fast_path and not measured
 
 
 @dataclass
@@ -272,6 +280,7 @@ class PopulationResult:
             float(np.mean(scores)) if scores else float("nan"),
             "; ".join(failed) or None,
             self.signum,
+            members=list(self.members),
         )
 
 
@@ -324,6 +333,7 @@ def run_population(cfg: DictConfig, progress: bool = True) -> PopulationResult:
         m.recorder.log_episode(stats)  # type: ignore[arg-type]
 
     stop = GracefulStop()
+    t0 = time.perf_counter()
 
     def on_member_end(m: Member, pop: ControlledPopulation, j: int) -> None:
         if m.status == "KILLED":
@@ -334,7 +344,12 @@ def run_population(cfg: DictConfig, progress: bool = True) -> PopulationResult:
             )
         finish_member(m, pop.network(j), conf)
         assert m.recorder is not None
-        results[m.seed] = RunResult(m.recorder.run_id, m.status, m.score, m.reason)
+        results[m.seed] = RunResult(
+            m.recorder.run_id, m.status, m.score, m.reason, returns=list(m.returns),
+            steps=m.signals.n, seconds=time.perf_counter() - t0,
+            rate=m.signals.n / (time.perf_counter() - t0), epsilon=float(pop.epsilon[j]),
+            solve_threshold=conf.env.solve_threshold,
+        )  # fmt: skip
 
     with stop:
         try:
@@ -407,8 +422,10 @@ def finish_member(m: Member, net: QNetwork | None, conf: Config) -> None:
             with tempfile.TemporaryDirectory() as tmp:
                 save_network(net, Path(tmp))
                 rec.log_dir(Path(tmp), "model")
+        if m.status == "FINISHED" and not conf.train.keep_checkpoints:
+            rec.delete_artifacts(CHECKPOINT_ROOT)  # nothing left to resume
     finally:
         status = m.status if m.status != "RUNNING" else "KILLED"
-        rec.finish(status, m.reason)
+        rec.finish(status, m.reason, m.score)
         if status != "FINISHED":
             log.warning("run %s %s: %s", rec.run_id, status, m.reason)
