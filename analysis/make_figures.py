@@ -56,18 +56,34 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def pick(runs: pd.DataFrame, column: str, given: str | None, default: str, where: str) -> str:
-    """The ``--env`` / ``--controller`` of the single-run figures: the one given, which the
-    runs must have (else exit 2), or ``default`` if present, else the first present."""
+    """The ``--env`` / ``--controller`` of the single-run figures: the one given, or
+    ``default`` if the runs have it, else the first they have.  A name cdqn does not know
+    (not a controller, not an environment preset or gymnasium id) and the runs do not have
+    is refused with exit status 2; a known one the runs lack leaves its figures skipped."""
     present = sorted(str(v) for v in runs[column].dropna().unique())
     if given is None:
         return default if default in present or not present else present[0]
-    if given not in present:
+    if given not in present and given not in known_names(column):
+        allowed = "controllers" if column == "controller" else "environments"
         note(
-            f"error: --{column} {given}: no {column} of that name among the runs in {where}; "
-            f"present: {', '.join(present) or 'none'}"
+            f"error: --{column} {given}: unknown; {allowed} in {where}: "
+            f"{', '.join(present) or 'none'}"
         )
         raise SystemExit(2)
     return given
+
+
+def known_names(column: str) -> set[str]:
+    """Every controller name, or every environment preset name and gymnasium id."""
+    from cdqn.config import CONTROLLERS  # noqa: PLC0415
+
+    if column == "controller":
+        return set(CONTROLLERS)
+    import gymnasium as gym  # noqa: PLC0415
+
+    from cdqn.envs import env_presets  # noqa: PLC0415
+
+    return set(env_presets()) | set(gym.registry)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -402,8 +402,8 @@ def comparable_runs(runs: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
     latest started), and notes on what was grouped or left out.
 
     ``env`` becomes :func:`environment`; ``settings`` is ``""`` when the runs of every
-    environment agree in all :data:`SETTINGS`, else, per run, the settings that differ
-    within an environment (``network.width=64, train.episodes=3``).  A seed run twice with
+    (environment, controller) agree in all :data:`SETTINGS`, else, per run, its values of
+    the settings that differ within one of them (``network.width=64, train.episodes=3``).  A seed run twice with
     the same settings counts once (the latest).
     """
     notes: list[str] = []
@@ -413,8 +413,10 @@ def comparable_runs(runs: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
         return runs, notes
     runs["env"] = environment(runs)
     values = {key: setting_values(runs, key) for key in SETTINGS}
-    by_env = {key: values[key].groupby(runs["env"]).nunique(dropna=False) for key in SETTINGS}
-    varying = [key for key in SETTINGS if (by_env[key] > 1).any()]
+    cells = [runs["env"], runs["controller"]]
+    varying = [
+        key for key in SETTINGS if (values[key].groupby(cells).nunique(dropna=False) > 1).any()
+    ]
     runs["settings"] = [", ".join(f"{key}={values[key][i]}" for key in varying) for i in runs.index]
     key = ["env", "settings", "controller", "seed"]
     counts = runs.groupby(key, dropna=False).size()
