@@ -403,9 +403,8 @@ def comparable_runs(runs: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
 
     ``env`` becomes :func:`environment`; ``settings`` is ``""`` when the runs of every
     (environment, controller) agree in all :data:`SETTINGS`, else, per run, its values of
-    the settings that differ within one of them (``network.width=64, train.episodes=3``).  A seed run twice with
-    the same settings counts once (the latest).
-    """
+    the settings that differ within one of them (``network.width=64, train.episodes=3``).
+    A seed run twice with the same settings counts once (the latest)."""
     notes: list[str] = []
     runs = runs.copy()
     if runs.empty:

@@ -344,11 +344,11 @@ def run_population(cfg: DictConfig, progress: bool = True) -> PopulationResult:
             )
         finish_member(m, pop.network(j), conf)
         assert m.recorder is not None
+        seconds = time.perf_counter() - t0
         results[m.seed] = RunResult(
             m.recorder.run_id, m.status, m.score, m.reason, returns=list(m.returns),
-            steps=m.signals.n, seconds=time.perf_counter() - t0,
-            rate=m.signals.n / (time.perf_counter() - t0), epsilon=float(pop.epsilon[j]),
-            solve_threshold=conf.env.solve_threshold,
+            steps=m.signals.n, seconds=seconds, rate=m.signals.n / seconds,
+            epsilon=float(pop.explore.epsilon[j]), solve_threshold=conf.env.solve_threshold,
         )  # fmt: skip
 
     with stop:
