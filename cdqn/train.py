@@ -99,6 +99,9 @@ class RunResult:
         return first_solve(self.returns, self.solve_threshold)
 
 
+MODEL_TRAINING_VIEW = "workflowType=machine_learning"
+"""The MLflow UI's query for its model-training view (runs table) of an experiment; MLflow 3
+opens the GenAI view otherwise and remembers the choice in the browser."""
 MOSTLY_RANDOM = 0.5
 """A run that ends with ε above this played mostly at random: its score says little."""
 
@@ -150,11 +153,17 @@ def summary_text(result: RunResult, uri: str, experiment: str) -> str:
     lines: list[str] = []
     for r in result.members or [result]:
         lines += result_lines(r)
-    if uri.startswith(("http://", "https://")):
-        ui = f"open {uri} in a browser"
-    else:
-        ui = f"mlflow ui --backend-store-uri {uri}"
-    lines += [f"store: {uri}, experiment {experiment!r}; look at it with", f"  {ui}"]
+    server = uri.startswith(("http://", "https://"))
+    base = uri.rstrip("/") if server else "http://127.0.0.1:5000"
+    try:
+        exp = MlflowClient(uri).get_experiment_by_name(experiment)
+    except MlflowException:
+        exp = None
+    page = f"{base}/#/experiments/{exp.experiment_id if exp else ''}?{MODEL_TRAINING_VIEW}"
+    lines.append(f"store: {uri}, experiment {experiment!r}; look at it with")
+    if not server:
+        lines.append(f"  mlflow ui --backend-store-uri {uri}")
+    lines.append(f"  and open {page} (the runs table)")
     return "\n".join(lines)
 
 

@@ -116,6 +116,9 @@ def test_summary_at_the_end_of_a_run(store) -> None:
     assert re.search(r"\d+ environment steps, [\d.]+ s of training \(\d+ steps/s\)", out)
     assert "warning: ε = " in out and "mostly random play" in out
     assert f"mlflow ui --backend-store-uri {st.uri}" in out
+    exp_id = st.client.get_experiment_by_name("cdqn").experiment_id
+    page = f"http://127.0.0.1:5000/#/experiments/{exp_id}?workflowType=machine_learning"
+    assert f"and open {page} (the runs table)" in out
 
 
 def test_multirun_summary_lists_scores(store) -> None:
