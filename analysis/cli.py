@@ -12,7 +12,10 @@ from analysis.runs import (
     DEFAULT_URI,
     EmptyStoreError,
     RunStore,
+    WhereError,
     comparable_runs,
+    environment,
+    where,
 )
 
 
@@ -34,6 +37,14 @@ def add_store_arguments(parser: argparse.ArgumentParser) -> None:
         choices=["FINISHED", "FAILED", "KILLED", "RUNNING"],
         help="run status to include; repeatable (default: FINISHED only)",
     )
+    parser.add_argument(
+        "--where",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="only runs whose tag or param KEY has this value (train.episodes=2000, "
+        "network.width=64, env=cartpole, design_source=synthesized); repeatable",
+    )
 
 
 def open_store(args: argparse.Namespace) -> RunStore:
@@ -52,9 +63,18 @@ def open_store(args: argparse.Namespace) -> RunStore:
     return store
 
 
-def select_runs(store: RunStore) -> pd.DataFrame:
-    """The store's runs, one per (env, controller, seed), with a note for each oddity."""
-    runs, notes = comparable_runs(store.require_runs())
+def select_runs(store: RunStore, conditions: list[str] | None = None) -> pd.DataFrame:
+    """The store's runs that match ``conditions`` (``--where``), grouped by the settings that
+    change results, one per (env, settings, controller, seed), with a note for each oddity;
+    exits with status 2 when a condition names no setting or matches no run."""
+    runs = store.require_runs()
+    runs = runs.assign(env=environment(runs))
+    try:
+        runs = where(runs, conditions or [])
+    except WhereError as err:
+        print(f"error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
+    runs, notes = comparable_runs(runs)
     for line in notes:
         note(f"note: {line}")
     return runs

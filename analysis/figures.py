@@ -232,13 +232,31 @@ def learning(ctx: FigureContext, env: str) -> Figure:
         if ctrl not in present
     ]
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
-    for ctrl in ordered(eps["controller"], CONTROLLER_ORDER):
-        df = eps[eps["controller"] == ctrl]
+    settings = sorted(eps["settings"].unique()) if "settings" in eps else [""]
+    styles = dict(zip(settings, ["-", "--", ":", "-."] * len(settings), strict=False))
+    longest = int(eps["episode"].max()) + 1
+    for ctrl, setting in (
+        (c, st) for c in ordered(eps["controller"], CONTROLLER_ORDER) for st in settings
+    ):
+        df = eps[(eps["controller"] == ctrl) & (eps.get("settings", "") == setting)]
+        if df.empty:
+            continue
         stats = _mean_std(df, "return_ma100")
         x = stats.index.to_numpy() + 1
         n = df["run_id"].nunique()
         color = ctx.colors[ctrl]
-        ax.plot(x, stats["mean"], color=color, lw=1.5, label=f"{controller_label(ctrl)} ({n})")
+        label = f"{controller_label(ctrl)} ({n})" + (f" [{setting}]" if setting else "")
+        short = len(x) <= max(20, longest // 50)  # a short run stays visible: markers
+        ax.plot(
+            x,
+            stats["mean"],
+            color=color,
+            lw=1.5,
+            ls=styles[setting],
+            marker="o" if short else None,
+            ms=4,
+            label=label,
+        )
         ax.fill_between(
             x,
             stats["mean"] - stats["std"],

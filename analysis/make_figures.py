@@ -19,6 +19,8 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: make the repository root importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import pandas as pd  # noqa: E402
+
 from analysis.cli import add_store_arguments, note, open_store, select_runs  # noqa: E402
 
 
@@ -28,8 +30,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_store_arguments(parser)
     parser.add_argument("--out", type=Path, default=Path("figures"), help="output folder")
-    parser.add_argument("--env", default="cartpole", help="environment of single-run figures")
-    parser.add_argument("--controller", default="hinf", help="controller of single-run figures")
+    parser.add_argument(
+        "--env", default=None, help="environment of single-run figures (default: cartpole)"
+    )
+    parser.add_argument(
+        "--controller", default=None, help="controller of single-run figures (default: hinf)"
+    )
     parser.add_argument("--seed", type=int, default=None, help="seed (default: the lowest)")
     parser.add_argument(
         "--episode", type=int, default=None, help="episode (from 1) of the one-episode figures"
@@ -49,20 +55,55 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def pick(runs: pd.DataFrame, column: str, given: str | None, default: str, where: str) -> str:
+    """The ``--env`` / ``--controller`` of the single-run figures: the one given, or
+    ``default`` if the runs have it, else the first they have.  A name cdqn does not know
+    (not a controller, not an environment preset or gymnasium id) and the runs do not have
+    is refused with exit status 2; a known one the runs lack leaves its figures skipped."""
+    present = sorted(str(v) for v in runs[column].dropna().unique())
+    if given is None:
+        return default if default in present or not present else present[0]
+    if given not in present and given not in known_names(column):
+        allowed = "controllers" if column == "controller" else "environments"
+        note(
+            f"error: --{column} {given}: unknown; {allowed} in {where}: "
+            f"{', '.join(present) or 'none'}"
+        )
+        raise SystemExit(2)
+    return given
+
+
+def known_names(column: str) -> set[str]:
+    """Every controller name, or every environment preset name and gymnasium id."""
+    from cdqn.config import CONTROLLERS  # noqa: PLC0415
+
+    if column == "controller":
+        return set(CONTROLLERS)
+    import gymnasium as gym  # noqa: PLC0415
+
+    from cdqn.envs import env_presets  # noqa: PLC0415
+
+    return set(env_presets()) | set(gym.registry)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     start = time.perf_counter()
     store = open_store(args)
+
+    runs = select_runs(store, args.where)
+    env = pick(runs, "env", args.env, "cartpole", store.describe())
+    controller = pick(runs, "controller", args.controller, "hinf", store.describe())
 
     from analysis import figures as figs  # plotting imports only when there is something to plot
 
     figs.apply_theme()
     ctx = figs.FigureContext(
         store,
-        select_runs(store),
+        runs,
         figs.Selection(
-            env=args.env,
-            controller=args.controller,
+            env=env,
+            controller=controller,
             seed=args.seed,
             episode=args.episode,
             window=args.window,

@@ -3,8 +3,12 @@
     python analysis/make_table.py                          # Markdown on stdout, files in tables/
     python analysis/make_table.py --tracking-uri http://127.0.0.1:5000 --experiment cdqn
     python analysis/make_table.py --compare-paper --out tables/ --threshold acrobot=-100
+    python analysis/make_table.py --where train.episodes=2000 --where network.width=2500
 
-Writes ``result_summary.{md,csv,tex}`` and the per-run ``run_scores.csv`` into ``--out``.
+Runs that differ in a setting that changes results (:data:`analysis.runs.SETTINGS`) are
+never averaged together: each group of settings gets its own table, headed by the settings
+that tell it apart; ``--where KEY=VALUE`` keeps one.  Writes ``result_summary.{md,csv,tex}``
+and the per-run ``run_scores.csv`` into ``--out`` (the CSVs with a ``settings`` column).
 """
 
 from __future__ import annotations
@@ -16,6 +20,8 @@ from pathlib import Path
 
 if __package__ in (None, ""):  # run as a script: make the repository root importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import pandas as pd  # noqa: E402
 
 from analysis import table as tbl  # noqa: E402
 from analysis.cli import add_store_arguments, note, open_store, select_runs  # noqa: E402
@@ -57,25 +63,39 @@ def main(argv: list[str] | None = None) -> int:
     thresholds = parse_thresholds(args.threshold)
     start = time.perf_counter()
     store = open_store(args)
-    runs = select_runs(store)
+    runs = select_runs(store, args.where)
     episodes = store.episodes(tbl.TABLE_METRICS, runs)
     if episodes.empty:
         note(f"error: the runs in {store.describe()} have no episode metrics")
         return 1
-    table = tbl.build(episodes, runs, thresholds)
-    for line in tbl.missing_lines(table, "/".join(store.statuses)):
-        note(line)
-
-    markdown = tbl.to_markdown(table, args.compare_paper)
+    groups = list(runs.groupby("settings", sort=True))
+    texts, latex, summaries, scores = [], [], [], []
+    for k, (settings, group) in enumerate(groups, start=1):
+        table = tbl.build(episodes[episodes["run_id"].isin(group["run_id"])], group, thresholds)
+        if len(groups) == 1:
+            for line in tbl.missing_lines(table, "/".join(store.statuses)):
+                note(line)
+        text = tbl.to_markdown(table, args.compare_paper) + "\n\n" + tbl.notes(table)
+        if len(groups) > 1:
+            text = f"Group {k} of {len(groups)}: {settings}\n\n{text}"
+        texts.append(text)
+        latex.append(tbl.to_latex(table, args.compare_paper))
+        summaries.append(table.summary.assign(settings=settings))
+        scores.append(table.scores.assign(settings=settings))
+    if len(groups) > 1:
+        texts.insert(
+            0,
+            f"These runs form {len(groups)} groups of settings that change results; each has "
+            "its own table (pick one with --where KEY=VALUE).",
+        )
+    markdown = "\n\n".join(texts)
     print(markdown)
-    print()
-    print(tbl.notes(table))
 
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "result_summary.md").write_text(markdown + "\n\n" + tbl.notes(table) + "\n")
-    table.summary.to_csv(args.out / "result_summary.csv", index=False)
-    table.scores.to_csv(args.out / "run_scores.csv", index=False)
-    (args.out / "result_summary.tex").write_text(tbl.to_latex(table, args.compare_paper))
+    (args.out / "result_summary.md").write_text(markdown + "\n")
+    pd.concat(summaries, ignore_index=True).to_csv(args.out / "result_summary.csv", index=False)
+    pd.concat(scores, ignore_index=True).to_csv(args.out / "run_scores.csv", index=False)
+    (args.out / "result_summary.tex").write_text("\n".join(latex))
     note(
         f"{len(runs)} runs from {store.describe()} in {time.perf_counter() - start:.1f} s; "
         f"wrote {args.out}/result_summary.{{md,csv,tex}} and run_scores.csv"

@@ -57,19 +57,25 @@ EPISODE_METRICS = (
 TAG_COLUMNS = ("env", "env_id", "controller", "seed", "git_commit", "design_source")
 """Tags every cdqn run carries; they become columns of :meth:`RunStore.runs`."""
 
-RUN_KEY = ("run_id", "env", "controller", "seed")
+RUN_KEY = ("run_id", "env", "controller", "seed", "settings")
 """The columns that identify a run in the per-episode table."""
 
-COMPARED_PARAMS = (
-    "env.id",
-    "env.max_episode_steps",
-    "env.obs_indices",
+SETTINGS = (
+    "design_source",
+    "controller.design",
+    "controller.synthesis.ntk_bounds",
     "network.width",
+    "network.dtype",
     "train.episodes",
     "train.lr",
     "train.discount",
+    "train.eps_dec",
+    "train.bootstrap_terminal",
+    "env.max_episode_steps",
+    "env.obs_indices",
 )
-"""Params that should agree within a (controller, env) cell for its seeds to be comparable."""
+"""Tags and params that change results: runs of one environment that differ in any of them
+are never averaged together (:func:`comparable_runs` puts them into separate groups)."""
 
 
 class EmptyStoreError(RuntimeError):
@@ -234,6 +240,8 @@ class RunStore:
         """
         metrics = list(metrics)
         runs = self.runs() if runs is None else runs
+        if "settings" not in runs.columns:  # runs not grouped by comparable_runs
+            runs = runs.assign(settings="")
         columns = [*RUN_KEY, "episode", *metrics]
         if runs.empty or not metrics:
             return pd.DataFrame(columns=columns)
@@ -358,26 +366,99 @@ class RunStore:
         return None if path is None else pd.read_csv(path)
 
 
-def comparable_runs(runs: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
-    """One run per (env, controller, seed), the latest started, and notes on the rest.
+def setting_values(runs: pd.DataFrame, key: str) -> pd.Series:
+    """The value of tag or param ``key`` of every run, decoded and as text (``"64"``,
+    ``"[2, 3]"``, ``"None"``); None where a run does not have it."""
+    column = key if key in runs.columns else f"params.{key}"
+    if column not in runs.columns:
+        return pd.Series(None, index=runs.index, dtype=object)
+    return runs[column].map(lambda v: None if v is None else _text(param_value(v)))
 
-    A seed run twice would otherwise count twice in a cell's mean and std.  The notes also
-    name every (env, controller) whose runs differ in one of :data:`COMPARED_PARAMS`.
-    """
-    notes = []
-    key = ["env", "controller", "seed"]
+
+def _text(value: Any) -> str:
+    return json.dumps(value) if isinstance(value, list | dict) else str(value)
+
+
+def environment(runs: pd.DataFrame) -> pd.Series:
+    """A run's environment for the analysis: its ``env`` tag, or its ``env_id`` when the tag
+    names a preset of another id (runs made before ``env.id=<id>`` named runs by the id)."""
+    from cdqn.envs import env_presets  # noqa: PLC0415
+
+    presets = env_presets()
+
+    def one(env: Any, env_id: Any) -> Any:
+        preset = presets.get(str(env))
+        return env_id if preset is not None and env_id and env_id != preset.id else env
+
+    return pd.Series(
+        [one(e, i) for e, i in zip(runs["env"], runs["env_id"], strict=True)],
+        index=runs.index,
+        dtype=object,
+    )
+
+
+def comparable_runs(runs: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
+    """Runs grouped by the settings that change results, one run per seed and group (the
+    latest started), and notes on what was grouped or left out.
+
+    ``env`` becomes :func:`environment`; ``settings`` is ``""`` when the runs of every
+    (environment, controller) agree in all :data:`SETTINGS`, else, per run, its values of
+    the settings that differ within one of them (``network.width=64, train.episodes=3``).
+    A seed run twice with the same settings counts once (the latest)."""
+    notes: list[str] = []
+    runs = runs.copy()
+    if runs.empty:
+        runs["settings"] = pd.Series(dtype=object)
+        return runs, notes
+    runs["env"] = environment(runs)
+    values = {key: setting_values(runs, key) for key in SETTINGS}
+    cells = [runs["env"], runs["controller"]]
+    varying = [
+        key for key in SETTINGS if (values[key].groupby(cells).nunique(dropna=False) > 1).any()
+    ]
+    runs["settings"] = [", ".join(f"{key}={values[key][i]}" for key in varying) for i in runs.index]
+    key = ["env", "settings", "controller", "seed"]
     counts = runs.groupby(key, dropna=False).size()
-    for (env, ctrl, seed), n in counts[counts > 1].items():
-        notes.append(f"{env}/{ctrl} seed {seed}: {n} runs, only the latest one counts")
+    for (env, settings, ctrl, seed), n in counts[counts > 1].items():
+        where = f" [{settings}]" if settings else ""
+        notes.append(f"{env}/{ctrl}{where} seed {seed}: {n} runs, only the latest one counts")
     latest = runs.sort_values("start_time").drop_duplicates(key, keep="last")
-    for (env, ctrl), df in latest.groupby(["env", "controller"]):
-        for name in COMPARED_PARAMS:
-            col = f"params.{name}"
-            if col in df and df[col].nunique(dropna=False) > 1:
-                values = ", ".join(sorted(map(str, df[col].unique())))
-                notes.append(f"{env}/{ctrl}: runs differ in {name} ({values})")
-    latest = latest.sort_values(["env", "controller", "seed", "start_time"])
+    if varying:
+        groups = latest["settings"].nunique()
+        notes.append(
+            f"the runs differ in {', '.join(varying)}: {groups} groups of settings, never "
+            "averaged together; pick one with --where KEY=VALUE"
+        )
+    latest = latest.sort_values(["env", "settings", "controller", "seed", "start_time"])
     return latest.reset_index(drop=True), notes
+
+
+class WhereError(ValueError):
+    """A ``--where KEY=VALUE`` filter names no setting of the runs or matches no run."""
+
+
+def where(runs: pd.DataFrame, conditions: Sequence[str]) -> pd.DataFrame:
+    """The runs whose tag or param ``KEY`` equals ``VALUE`` for every ``KEY=VALUE``
+    (values compared decoded: ``train.lr=5e-5`` matches the param ``5e-05``)."""
+    for cond in conditions:
+        key, sep, value = cond.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise WhereError(f"--where {cond!r}: expected KEY=VALUE, e.g. train.episodes=2000")
+        column = key if key in runs.columns else f"params.{key}"
+        if column not in runs.columns:
+            known = [*TAG_COLUMNS, *SETTINGS]
+            raise WhereError(
+                f"--where {cond}: no run has a tag or param {key!r}; e.g. {', '.join(known)}"
+            )
+        have = setting_values(runs, key)
+        want = _text(param_value(value.strip()))
+        hit = runs[have == want]
+        if hit.empty:
+            present = ", ".join(sorted({str(v) for v in have}))
+            raise WhereError(f"--where {cond}: no run has {key}={value}; present: {present}")
+        runs = hit
+    return runs
 
 
 @lru_cache(maxsize=256)

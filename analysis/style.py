@@ -76,7 +76,9 @@ def controller_label(name: str) -> str:
 
 
 def env_text(name: str) -> str:
-    return ENV_TEXT.get(name, name.replace("_", " ").capitalize())
+    if name in ENV_TEXT or "-v" not in name:
+        return ENV_TEXT.get(name, name.replace("_", " ").capitalize())
+    return name  # a gymnasium id (env.id=<id> runs), as registered
 
 
 def env_file_prefix(name: str) -> str:

@@ -30,8 +30,11 @@ def record_job(
     run_id: str | None = None,
     reason: str | None = None,
     final_score: float | None = None,
+    solved: str | None = None,
 ) -> None:
-    """Write this Hydra job's outcome (status FINISHED, FAILED, KILLED or REFUSED)."""
+    """Write this Hydra job's outcome (status FINISHED, FAILED, KILLED or REFUSED), its
+    final score and whether it reached the solve threshold (``solved``, e.g. ``not
+    solved``)."""
     try:
         hc = HydraConfig.get()
     except ValueError:  # not under Hydra (tests, notebooks)
@@ -44,6 +47,7 @@ def record_job(
         "run_id": run_id,
         "reason": reason,
         "final_score": score,
+        "solved": solved,
     }
     out = Path(hc.runtime.output_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -82,7 +86,13 @@ def format_summary(jobs: list[dict[str, Any]], sweep_dir: Path) -> str:
     for job in jobs:
         name = Path(job["dir"]).relative_to(sweep_dir) if job["dir"] else "?"
         run = f"run {job['run_id']}" if job.get("run_id") else "no run"
-        line = f"  {str(name):>4}  {job['status']:<8}  {run}  {' '.join(job['overrides'])}"
+        score = job.get("final_score")
+        result = "" if score is None else f"score {score:8.2f}"
+        if job.get("solved"):
+            result += f" ({job['solved']})"
+        line = (
+            f"  {str(name):>4}  {job['status']:<8}  {run}  {result}  {' '.join(job['overrides'])}"
+        )
         if job["status"] != "FINISHED" and job.get("reason"):
             line += f"\n          -> {job['reason']}"
         lines.append(line)

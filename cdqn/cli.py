@@ -69,6 +69,9 @@ def check_train(cfg: DictConfig) -> None:
     """What ``python -m cdqn.train`` refuses: the schema's rules and the environment."""
     if cfg.get("resume"):
         return  # the stored configuration is checked when the run is resumed
+    from cdqn.envs import adopt_env_id  # noqa: PLC0415 (gymnasium only when needed)
+
+    adopt_env_id(cfg)  # env.id=<id>: that environment's cap (cdqn.envs)
     conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
     validate(conf)
     env = conf.env
@@ -171,6 +174,10 @@ def check_overrides(
             return [f"{text}: cannot parse ({first}); see Hydra's override grammar"]
     errors = _group_errors(parsed)
     if config_name == "config" and any(o.key_or_group == "resume" for o in parsed):
+        if any(o.key_or_group == "resume" and not str(o.value() or "").strip() for o in parsed):
+            errors.append(
+                "resume='': give the MLflow run id of the run to continue, resume=<run_id>"
+            )
         errors += resume_conflicts(overrides)
     if errors:
         return errors

@@ -23,6 +23,10 @@ class ConfigError(ValueError):
 
 REPLAY_WHEN = ("terminated", "truncated", "any")
 """Episodes that qualify for episodic replay (:class:`ReplayConfig`)."""
+EXPERIMENT_TAGS = {"mlflow.experimentKind": "custom_model_development"}
+"""Tags of the MLflow experiments cdqn creates: the UI then opens them as model-training
+experiments, on the runs table (MLflow 3 opens an untagged new experiment as a GenAI one)."""
+
 CONTROLLERS = ("h2", "hinf", "hinf_f", "ddqn", "none")
 """Controller names: gain-scheduled H2, dynamic H∞, fixed-structure H∞, Double DQN, none."""
 
@@ -273,6 +277,8 @@ class TrainConfig:
     """Store the per-step signals (signals/steps.parquet, signals/fft.parquet)."""
     checkpoint_every: int = 100
     """Episodes between checkpoints stored in the run (0: only when interrupted)."""
+    keep_checkpoints: bool = False
+    """Keep the resume checkpoints of a run that FINISHED (default: deleted at the end)."""
     population: int = 1
     """Seeds trained together in one process as one batch: seed, seed+1, …, seed+K−1, each
     its own MLflow run (cdqn.population)."""
@@ -498,6 +504,13 @@ def validate(cfg: Config) -> None:
                 f"weights.theta_bounds.nominal={nominal}: need [Θ1, Θ2], both > 0, or null",
             )
         )
+    checks += [
+        (cfg.seed >= 0, f"seed={cfg.seed}: must be >= 0 (a non-negative integer)"),
+        (
+            cfg.resume is None or bool(str(cfg.resume).strip()),
+            "resume='': give the MLflow run id of the run to continue, resume=<run_id>",
+        ),
+    ]
     _raise_if_failed(checks)
 
 

@@ -1,12 +1,125 @@
-"""Environments: any gymnasium id with a discrete action space."""
+"""Environments: any gymnasium id with a discrete action space.
+
+The presets of ``conf/env/`` (``cartpole``, ``acrobot``, ...) name one gymnasium id each,
+with its episode cap and solve threshold.  ``env.id=<id>`` on top of a preset trains that
+other environment: :func:`adopt_env_id` then takes its name, cap and threshold from the
+id's own registration, so the run is labelled and judged as what it trains.
+"""
 
 from __future__ import annotations
+
+import difflib
+import functools
+import logging
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 from gymnasium.spaces import Box, Discrete
+from omegaconf import DictConfig, OmegaConf, read_write
 
 from cdqn.config import ConfigError, EnvConfig
+
+log = logging.getLogger("cdqn")
+
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+"""The Hydra config folder shipped with cdqn."""
+EXTRAS = {
+    "box2d": 'pip install swig, then pip install "gymnasium[box2d]"',
+    "mujoco": 'pip install "gymnasium[mujoco]"',
+}
+"""Install commands of gymnasium's optional environment families."""
+
+
+@functools.lru_cache(maxsize=4)
+def env_presets(conf_dir: Path = CONF_DIR) -> dict[str, EnvConfig]:
+    """The environment presets of ``conf_dir/env/*.yaml`` by their ``name``."""
+    folder = conf_dir / "env"
+
+    def load(stem: str) -> DictConfig:
+        node = OmegaConf.load(folder / f"{stem}.yaml")
+        assert isinstance(node, DictConfig)
+        bases = [d for d in node.pop("defaults", []) if d != "_self_"]
+        return OmegaConf.merge(*[load(b) for b in bases], node)  # type: ignore[return-value]
+
+    out: dict[str, EnvConfig] = {}
+    for path in sorted(folder.glob("*.yaml")):
+        preset = OmegaConf.merge(OmegaConf.structured(EnvConfig), load(path.stem))
+        env: EnvConfig = OmegaConf.to_object(preset)  # type: ignore[assignment]
+        out[env.name] = env
+    return out
+
+
+def adopt_env_id(cfg: DictConfig) -> str | None:
+    """Make a run whose ``env.id`` is not its preset's id a run of that id, in place.
+
+    The preset is the one named ``env.name``.  When ``env.id`` differs from the preset's id
+    (``env=cartpole env.id=Acrobot-v1``):
+
+    * ``env.name`` becomes the id, so the run is named ``<id>-<controller>-s<seed>`` and
+      tagged ``env=<id>``;
+    * ``env.max_episode_steps`` and ``env.solve_threshold`` come from the id's registration
+      (``gymnasium.spec(id)``: ``max_episode_steps``, ``reward_threshold``) unless they were
+      set to something other than the preset's values;
+    * ``controller.synthesis.ntk_bounds`` becomes ``measured`` unless the selected
+      ``weights`` preset belongs to an environment preset of this id: a robust design is
+      never built on another environment's NTK box.
+
+    Returns one line saying what changed, or None when nothing did (a preset's own id, a
+    name no preset has, an id gymnasium does not know: :func:`make_env` refuses that).
+    """
+    presets = env_presets()
+    env = cfg.env
+    preset = presets.get(str(env.name))
+    if preset is None or env.id == preset.id or env.id not in gym.registry:
+        return None
+    spec = gym.spec(env.id)
+    changed = [f"named {env.id}"]
+    with read_write(cfg):
+        env.name = env.id
+        if env.max_episode_steps == preset.max_episode_steps:
+            env.max_episode_steps = spec.max_episode_steps
+            changed.append(f"episode cap {spec.max_episode_steps} (its registration)")
+        if env.solve_threshold == preset.solve_threshold:
+            env.solve_threshold = spec.reward_threshold
+            changed.append(f"solve threshold {spec.reward_threshold} (its registration)")
+        weights_env = presets.get(str(cfg.weights.name))
+        if weights_env is None or weights_env.id != env.id:
+            cfg.controller.synthesis.ntk_bounds = "measured"
+            ctrl = cfg.controller
+            if ctrl.design == "synthesize" and ctrl.name in ("hinf", "hinf_f"):
+                changed.append(
+                    f"NTK box measured (weights={cfg.weights.name} are another environment's)"
+                )
+    return f"env.id={env.id} is not env={preset.name}'s {preset.id}: " + ", ".join(changed)
+
+
+def _unknown_id(env_id: str) -> ConfigError:
+    """The error for an unregistered id, with the nearest registered ids."""
+    ids = [k for k in gym.registry if "/" not in k]
+    base = env_id.rsplit("-v", 1)[0]
+    near = sorted(k for k in ids if k.rsplit("-v", 1)[0] == base)
+    near += [k for k in difflib.get_close_matches(env_id, ids, n=3, cutoff=0.6) if k not in near]
+    hint = (
+        f"did you mean {', '.join(near)}?"
+        if near
+        else f"e.g. {', '.join(sorted(ids)[:12])}, ... (python -c 'import gymnasium; "
+        "gymnasium.pprint_registry()' lists them all)"
+    )
+    return ConfigError(f"env.id={env_id!r} is not a registered gymnasium environment; {hint}")
+
+
+def _make(env_id: str, **kwargs: object) -> gym.Env:
+    """``gymnasium.make``, with a missing optional dependency as a :class:`ConfigError`."""
+    try:
+        return gym.make(env_id, **kwargs)
+    except gym.error.DependencyNotInstalled as err:
+        entry = str(gym.spec(env_id).entry_point)
+        family = next((f for f in EXTRAS if f".{f}." in entry), None)
+        fix = EXTRAS[family] if family else f"install what it names ({err})"
+        raise ConfigError(
+            f"env.id={env_id!r} needs an optional package that is not installed; {fix}"
+        ) from None
 
 
 class ObservationSubset(gym.ObservationWrapper):
@@ -57,12 +170,9 @@ class ObservationScale(gym.ObservationWrapper):
 def make_env(cfg: EnvConfig) -> gym.Env:
     """Build the environment of ``cfg``: gymnasium id, episode cap and feature subset."""
     if cfg.id not in gym.registry:
-        known = ", ".join(sorted(k for k in gym.registry if "/" not in k)[:12])
-        raise ConfigError(
-            f"env.id={cfg.id!r} is not a registered gymnasium environment (e.g. {known}, ...)"
-        )
+        raise _unknown_id(cfg.id)
     kwargs = {} if cfg.max_episode_steps is None else {"max_episode_steps": cfg.max_episode_steps}
-    env = gym.make(cfg.id, **kwargs)
+    env = _make(cfg.id, **kwargs)
     if not isinstance(env.action_space, Discrete):
         env.close()
         raise ConfigError(

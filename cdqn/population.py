@@ -35,6 +35,7 @@ import copy
 import logging
 import math
 import tempfile
+import time
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -47,6 +48,7 @@ from tqdm.auto import tqdm
 
 from cdqn.agents.base import StepRecord
 from cdqn.agents.episodic_replay import PopulationTail, Transitions, qualifies
+from cdqn.checkpoint import ROOT as CHECKPOINT_ROOT
 from cdqn.checkpoint import CheckpointStore
 from cdqn.config import Config, ReplayConfig, resolve_tracking_uri, validate
 from cdqn.control.factory import ControllerSetup, make_controller
@@ -357,8 +359,16 @@ def build_population(
 def batchable(conf: Config) -> bool:
     """Whether the members train as one batch: :class:`ControlledPopulation` (its
     controllers are the runtime controllers :class:`cdqn.population_step.ControllerArrays`
-    knows) or :class:`cdqn.ddqn_population.DDQNPopulation`, both on the fast path."""
-    return conf.train.fast_path
+    knows) or :class:`cdqn.ddqn_population.DDQNPopulation`, both on the fast path, with one
+    design for all members (a measured NTK box builds each seed's design on its own network,
+    :mod:`cdqn.ntk_bounds`)."""
+    ctrl = conf.controller
+    measured = (
+        ctrl.synthesis.ntk_bounds == "measured"
+        and ctrl.design == "synthesize"
+        and ctrl.name in ("hinf", "hinf_f", "h2")
+    )
+    return conf.train.fast_path and not measured
 
 
 @dataclass
@@ -382,6 +392,7 @@ class PopulationResult:
             float(np.mean(scores)) if scores else float("nan"),
             "; ".join(failed) or None,
             self.signum,
+            members=list(self.members),
         )
 
 
@@ -503,6 +514,7 @@ def train_members(
             m.recorder.log_episode(stats)  # type: ignore[arg-type]
 
     stop = GracefulStop()
+    t0 = time.perf_counter()
 
     def killed_reason(m: Member, during: str) -> str:
         assert m.recorder is not None
@@ -522,7 +534,12 @@ def train_members(
             )
         finish_member(m, pop.network(j), conf)
         assert m.recorder is not None
-        results[m.seed] = RunResult(m.recorder.run_id, m.status, m.score, m.reason)
+        seconds = time.perf_counter() - t0
+        results[m.seed] = RunResult(
+            m.recorder.run_id, m.status, m.score, m.reason, returns=list(m.returns),
+            steps=m.signals.n, seconds=seconds, rate=m.signals.n / seconds,
+            epsilon=float(pop.explore.epsilon[j]), solve_threshold=conf.env.solve_threshold,
+        )  # fmt: skip
 
     with stop:
         try:
@@ -716,8 +733,10 @@ def finish_member(m: Member, net: QNetwork | None, conf: Config) -> None:
             with tempfile.TemporaryDirectory() as tmp:
                 save_network(net, Path(tmp))
                 rec.log_dir(Path(tmp), "model")
+        if m.status == "FINISHED" and not conf.train.keep_checkpoints:
+            rec.delete_artifacts(CHECKPOINT_ROOT)  # nothing left to resume
     finally:
         status = m.status if m.status != "RUNNING" else "KILLED"
-        rec.finish(status, m.reason)
+        rec.finish(status, m.reason, m.score)
         if status != "FINISHED":
             log.warning("run %s %s: %s", rec.run_id, status, m.reason)

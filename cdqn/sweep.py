@@ -30,7 +30,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from cdqn.config import resolve_tracking_uri
+from cdqn.config import EXPERIMENT_TAGS, resolve_tracking_uri
 
 try:
     import fcntl
@@ -151,7 +151,7 @@ def ensure_store(uri: str, experiment: str, attempts: int = 5) -> None:
             with _store_lock(uri):
                 client = MlflowClient(uri)
                 if client.get_experiment_by_name(experiment) is None:
-                    client.create_experiment(experiment)
+                    client.create_experiment(experiment, tags=EXPERIMENT_TAGS)
             return
         except Exception as err:
             if attempt == attempts - 1:

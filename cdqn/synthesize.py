@@ -75,6 +75,10 @@ def h2_report(conf: SynthesizeConfig, out: Path) -> str:
 
 def synthesize(cfg: DictConfig) -> str:
     """Design, write the artefacts into ``cfg.out``, return the report."""
+    from cdqn.envs import adopt_env_id  # noqa: PLC0415
+
+    if (adopted := adopt_env_id(cfg)) is not None:  # env.id=<id>: that environment's box
+        log.info("%s", adopted)
     conf: SynthesizeConfig = OmegaConf.to_object(cfg)  # type: ignore[assignment]
     validate(conf)
     out = Path(conf.out)
@@ -127,8 +131,7 @@ def main(cfg: DictConfig) -> None:
         print(synthesize(cfg))
         print(f"artefacts in {Path(cfg.out).resolve()}")
     except (ConfigError, DesignError) as err:
-        log.error("%s", err)
-        print(f"error: {err}", file=sys.stderr)
+        print(f"error: {err}", file=sys.stderr)  # once, on stderr
         sys.exit(2)
 
 

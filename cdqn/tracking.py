@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import subprocess
 import tempfile
@@ -24,14 +25,16 @@ from urllib.parse import urlsplit
 import mlflow
 from mlflow.entities import Metric, Param, RunStatus, RunTag
 from mlflow.exceptions import MlflowException
+from mlflow.store.artifact.artifact_repository_registry import get_artifact_repository
 from mlflow.tracking import MlflowClient
 
-from cdqn.config import ConfigError
+from cdqn.config import EXPERIMENT_TAGS, ConfigError
 from cdqn.signals import SignalBuffer, amplitude_spectra
 from cdqn.trainer import EpisodeStats
 
 log = logging.getLogger("cdqn")
 T = TypeVar("T")
+
 MAX_PARAM_LENGTH = 6000
 CONFIG_ARTIFACT = "config.yaml"
 """The run's resolved configuration (without the ``hydra`` section)."""
@@ -261,7 +264,11 @@ class Recorder:
                     f"tracking.experiment={experiment!r} is deleted in {uri}; restore it "
                     "(mlflow experiments restore) or choose another name"
                 )
-            exp_id = exp.experiment_id if exp is not None else client.create_experiment(experiment)
+            exp_id = (
+                exp.experiment_id
+                if exp is not None
+                else client.create_experiment(experiment, tags=EXPERIMENT_TAGS)
+            )
             run = client.create_run(exp_id, run_name=run_name, tags=dict(tags))
         except MlflowException as err:
             raise TrackingError(f"tracking.uri={uri!r}: cannot open a run ({err})") from None
@@ -331,8 +338,33 @@ class Recorder:
             )
             self._retry(lambda: self.client.log_artifacts(self.run_id, tmp, "signals"), "signals/")
 
-    def finish(self, status: str = "FINISHED", failure_reason: str | None = None) -> None:
-        """Flush metrics and close the run with ``status`` (FINISHED, FAILED or KILLED)."""
+    def delete_artifacts(self, artifact_path: str) -> None:
+        """Remove the run's artifacts under ``artifact_path`` (e.g. its resume checkpoints);
+        a store that cannot delete keeps them, with a warning."""
+        run = self.client.get_run(self.run_id)
+        try:
+            repo = get_artifact_repository(run.info.artifact_uri)
+            if any(True for _ in self.client.list_artifacts(self.run_id, artifact_path)):
+                repo.delete_artifacts(artifact_path)
+        except Exception as err:  # stores without delete (e.g. some proxies): keep them
+            log.warning(
+                "run %s: could not delete its %s/ artifacts (%s: %s)",
+                self.run_id, artifact_path, type(err).__name__, err,
+            )  # fmt: skip
+
+    def finish(
+        self,
+        status: str = "FINISHED",
+        failure_reason: str | None = None,
+        final_score: float | None = None,
+    ) -> None:
+        """Flush metrics and close the run with ``status`` (FINISHED, FAILED or KILLED);
+        ``final_score`` (mean return of the last 100 episodes) is logged as metric
+        ``final_score``."""
+        if final_score is not None and math.isfinite(final_score):
+            self._pending.append(
+                Metric("final_score", float(final_score), int(time.time() * 1000), 0)
+            )
         self.flush()
         if failure_reason is not None:
             self.set_tags({"failure_reason": failure_reason[:5000]})

@@ -20,7 +20,8 @@ import math
 import os
 import sys
 import tempfile
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import urlsplit
 
@@ -37,6 +38,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from cdqn.agents import Agent, make_agent
 from cdqn.callbacks import record_job
+from cdqn.checkpoint import ROOT as CHECKPOINT_ROOT
 from cdqn.checkpoint import CheckpointStore, capture, load_local, local_path, restore, save_local
 from cdqn.cli import preflight, resume_conflicts
 from cdqn.config import (
@@ -48,7 +50,7 @@ from cdqn.config import (
 )
 from cdqn.control.errors import DesignError
 from cdqn.control.factory import ControllerSetup, make_controller
-from cdqn.envs import env_sizes, make_env
+from cdqn.envs import adopt_env_id, env_sizes, make_env
 from cdqn.interrupt import GracefulStop
 from cdqn.network import NetworkSpec, QNetwork, save_network
 from cdqn.ntk_bounds import measured_box
@@ -92,6 +94,93 @@ class RunResult:
     """The run's ``failure_reason`` when it ended FAILED or KILLED."""
     signum: int | None = None
     """The signal that stopped a KILLED run."""
+    returns: list[float] = field(default_factory=list)
+    """Return of every episode, in order."""
+    steps: int = 0
+    """Environment steps of the whole run."""
+    seconds: float = math.nan
+    """Wall time of this process's training (a resumed run: since it was resumed)."""
+    rate: float = math.nan
+    """Environment steps per second of wall time, bookkeeping and logging included."""
+    epsilon: float = math.nan
+    """Exploration ε at the end."""
+    solve_threshold: float | None = None
+    """``env.solve_threshold`` of the run."""
+    members: list[RunResult] = field(default_factory=list)
+    """A population's member runs (empty for a single run)."""
+
+    @property
+    def solved_at(self) -> int | None:
+        """First episode (from 1) whose 100-episode average return reaches the threshold."""
+        return first_solve(self.returns, self.solve_threshold)
+
+
+MODEL_TRAINING_VIEW = "workflowType=machine_learning"
+"""The MLflow UI's query for its model-training view (runs table) of an experiment; MLflow 3
+opens the GenAI view otherwise and remembers the choice in the browser."""
+MOSTLY_RANDOM = 0.5
+"""A run that ends with ε above this played mostly at random: its score says little."""
+
+
+def first_solve(returns: list[float], threshold: float | None) -> int | None:
+    """First episode ``n`` (from 1) with ``mean(returns[max(0, n-100):n]) >= threshold``,
+    the episode at which ``return_ma100`` first reaches the threshold; None if never."""
+    if threshold is None or not math.isfinite(threshold):
+        return None
+    for n in range(1, len(returns) + 1):
+        if float(np.mean(returns[max(0, n - 100) : n])) >= threshold:
+            return n
+    return None
+
+
+def result_lines(result: RunResult) -> list[str]:
+    """What a finished run says about itself: score, solve, steps, time (one run)."""
+    n = len(result.returns)
+    score = (
+        f"final score {result.final_score:.2f} (mean return of the last {min(n, 100)} of "
+        f"{n} episodes)"
+        if math.isfinite(result.final_score)
+        else "no episode finished"
+    )
+    threshold = result.solve_threshold
+    if threshold is None or not math.isfinite(threshold):
+        solved = "no solve threshold"
+    elif (at := result.solved_at) is None:
+        solved = f"solve threshold {threshold:g} not reached"
+    else:
+        solved = f"solve threshold {threshold:g} reached at episode {at}"
+    lines = [f"run {result.run_id} {result.status}: {score}; {solved}"]
+    if math.isfinite(result.seconds):
+        rate = f" ({result.rate:.0f} steps/s)" if math.isfinite(result.rate) else ""
+        lines.append(
+            f"  {result.steps} environment steps, {result.seconds:.1f} s of training{rate}"
+        )
+    if result.epsilon > MOSTLY_RANDOM:
+        lines.append(
+            f"  warning: ε = {result.epsilon:.2f} at the end (above {MOSTLY_RANDOM}): mostly "
+            "random play, so the score says little about the learned policy; train longer "
+            "(train.episodes) or explore less (train.eps_dec)"
+        )
+    return lines
+
+
+def summary_text(result: RunResult, uri: str, experiment: str) -> str:
+    """The closing summary of ``python -m cdqn.train``: each run, the store, the UI command."""
+    lines: list[str] = []
+    for r in result.members or [result]:
+        lines += result_lines(r)
+    server = uri.startswith(("http://", "https://"))
+    base = uri.rstrip("/") if server else "http://127.0.0.1:5000"
+    try:
+        exp = MlflowClient(uri).get_experiment_by_name(experiment)
+    except MlflowException:
+        exp = None
+    page = f"{base}/#/experiments/{exp.experiment_id if exp else ''}?{MODEL_TRAINING_VIEW}"
+    lines.append(f"store: {uri}, experiment {experiment!r}; look at it with")
+    if not server:
+        lines.append(f"  mlflow ui --backend-store-uri {uri}")
+    lines.append(f"  and open {page} (the runs table)")
+    return "\n".join(lines)
 
 
 @dataclass
@@ -126,6 +215,8 @@ def run(cfg: DictConfig, progress: bool = True) -> RunResult:
     continue that run from its last checkpoint instead (:func:`resume`)."""
     if cfg.get("resume"):
         return resume(cfg, progress)
+    if (adopted := adopt_env_id(cfg)) is not None:
+        log.info("%s", adopted)
     if cfg.train.get("population", 1) > 1:  # K seeds as one batch (cdqn.population)
         return run_population(cfg, progress).summary()
     conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
@@ -308,6 +399,7 @@ def _train(
     conf = job.conf
     episodes, every = conf.train.episodes, conf.train.checkpoint_every
     last_checkpoint = state.episode
+    start_steps, t0 = state.total_steps, time.perf_counter()
 
     def checkpoint(st: TrainState) -> None:
         nonlocal last_checkpoint
@@ -369,23 +461,55 @@ def _train(
             raise
         finally:
             stop.closing()
+            seconds = time.perf_counter() - t0
+            score = float(np.mean(state.returns[-100:])) if state.returns else float("nan")
             try:
                 if outage is None:
-                    outage = _close_run(job, recorder, signals, status, reason)
+                    outage = _close_run(job, recorder, signals, status, reason, score)
             finally:
                 job.env.close()
                 if outage is not None:
                     status, reason = OUTAGE, _stop_locally(job, recorder, state, signals, outage)
                 elif status != "FINISHED":
                     log.warning("run %s %s: %s", recorder.run_id, status, reason)
-    score = float(np.mean(state.returns[-100:])) if state.returns else float("nan")
-    return RunResult(recorder.run_id, status, score, reason, stop.signum)
+    return RunResult(
+        recorder.run_id,
+        status,
+        score,
+        reason,
+        stop.signum,
+        returns=list(state.returns),
+        steps=state.total_steps,
+        seconds=seconds,
+        rate=(state.total_steps - start_steps) / seconds if seconds > 0 else math.nan,
+        epsilon=float(job.agent.epsilon),
+        solve_threshold=conf.env.solve_threshold,
+    )
+
+
+def _solve_text(result: RunResult) -> str | None:
+    """``solved at episode 412`` / ``solved by 3 of 10 seeds`` / ``not solved`` (None: no
+    threshold), for the multirun summary."""
+    runs = result.members or [result]
+    threshold = runs[0].solve_threshold
+    if threshold is None or not math.isfinite(threshold) or not any(r.returns for r in runs):
+        return None
+    solved = [r.solved_at for r in runs if r.solved_at is not None]
+    if len(runs) > 1:
+        return f"solved by {len(solved)} of {len(runs)} seeds"
+    return f"solved at episode {solved[0]}" if solved else "not solved"
 
 
 def _close_run(
-    job: Job, recorder: Recorder, signals: SignalBuffer, status: str, reason: str | None
+    job: Job,
+    recorder: Recorder,
+    signals: SignalBuffer,
+    status: str,
+    reason: str | None,
+    score: float,
 ) -> TrackingOutage | None:
-    """Signals, model and status of the run; the outage if the store stopped answering."""
+    """Signals, model, final score and status of the run (a FINISHED run's checkpoints are
+    deleted unless ``train.keep_checkpoints``); the outage if the store stopped answering."""
     conf = job.conf
     try:
         try:
@@ -395,12 +519,14 @@ def _close_run(
                 with tempfile.TemporaryDirectory() as tmp:
                     save_network(job.net, Path(tmp))
                     recorder.log_dir(Path(tmp), "model")
+            if status == "FINISHED" and not conf.train.keep_checkpoints:
+                recorder.delete_artifacts(CHECKPOINT_ROOT)  # nothing left to resume
         except TrackingOutage:
             raise
         except BaseException:
-            recorder.finish(status, reason)
+            recorder.finish(status, reason, score)
             raise
-        recorder.finish(status, reason)
+        recorder.finish(status, reason, score)
     except TrackingOutage as err:
         return err
     return None
@@ -462,9 +588,11 @@ def main(cfg: DictConfig) -> float:
             raise
         log.exception("job failed")
         return float("nan")
-    record_job(result.status, result.run_id, result.reason, result.final_score)
+    record_job(result.status, result.run_id, result.reason, result.final_score, _solve_text(result))
     if result.status == OUTAGE:
         sys.exit(EXIT_OUTAGE)
+    if not multirun:
+        print(summary_text(result, resolve_tracking_uri(cfg.tracking.uri), cfg.tracking.experiment))
     if result.status == "KILLED":
         sys.exit(128 + (result.signum or 2))
     if result.status == "FAILED" and not multirun:

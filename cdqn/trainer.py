@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import math
 import time
 from collections import deque
@@ -12,11 +14,15 @@ import gymnasium as gym
 import numpy as np
 from numba import njit
 from tqdm.auto import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
 
 from cdqn.agents.base import Agent, StepRecord
 from cdqn.agents.episodic_replay import EpisodeTail, qualifies
 from cdqn.config import ReplayConfig
 from cdqn.signals import SignalBuffer
+
+RATE_WINDOW = 20
+"""Episodes over which the progress bar's steps/s is measured (wall time, everything in)."""
 
 
 class DivergenceError(RuntimeError):
@@ -120,6 +126,8 @@ def train(
     (:mod:`cdqn.agents.episodic_replay`) after each qualifying episode.
     """
     state = state or TrainState()
+    redirect = logging_redirect_tqdm(_console_loggers()) if progress else contextlib.nullcontext()
+    redirect.__enter__()  # log lines go above the bar instead of breaking it
     bar = tqdm(
         total=episodes,
         initial=state.episode,
@@ -129,7 +137,7 @@ def train(
         dynamic_ncols=True,
         leave=True,
     )
-    recent = deque(maxlen=20)
+    recent = deque([(state.total_steps, time.perf_counter())], maxlen=RATE_WINDOW + 1)
     controller = getattr(agent, "controller", None)
     loss_seen = False
     tail = EpisodeTail(replay) if replay is not None and replay.repeats > 0 else None
@@ -138,7 +146,7 @@ def train(
             ep = state.episode
             obs, _ = env.reset(seed=seed if ep == 0 else None)
             agent.start_episode()
-            start_row, ret, t0 = signals.n, 0.0, time.perf_counter()
+            start_row, ret = signals.n, 0.0
             if tail is not None:
                 tail.clear()
             for t in range(1_000_000_000):
@@ -174,10 +182,10 @@ def train(
             state.total_steps += length
             state.episode += 1
             stats = episode_stats(ep, signals.rows(start_row), state.returns, discount, replayed)
-            recent.append((length, time.perf_counter() - t0))
             if on_episode is not None:
                 on_episode(stats, state)
-            steps, secs = (sum(x) for x in zip(*recent, strict=True))
+            recent.append((state.total_steps, time.perf_counter()))
+            steps, secs = recent[-1][0] - recent[0][0], recent[-1][1] - recent[0][1]
             bar.set_postfix(
                 ret=f"{ret:.0f}",
                 ma100=f"{stats.return_ma100:.1f}",
@@ -190,6 +198,7 @@ def train(
                 break
     finally:
         bar.close()
+        redirect.__exit__(None, None, None)
     return state
 
 
@@ -200,6 +209,12 @@ def _healthy(rec: StepRecord, q_limit: float) -> bool:
         and abs(rec.q2) <= q_limit
         and math.isfinite(rec.u + rec.x_e + rec.loss)
     )
+
+
+def _console_loggers() -> list[logging.Logger]:
+    """The root logger and the loggers with console handlers of their own (MLflow's)."""
+    named = [logging.getLogger(n) for n in ("mlflow",)]
+    return [logging.getLogger(), *[lg for lg in named if lg.handlers]]
 
 
 def _diagnose(rec: StepRecord, q_limit: float, ep: int, t: int) -> None:

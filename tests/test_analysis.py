@@ -152,13 +152,24 @@ def test_database_query_equals_client_api(store_uri: str) -> None:
 def test_comparable_runs_keep_latest_run_per_seed(store_uri: str) -> None:
     runs = RunStore(store_uri, EXPERIMENT).runs()
     again = runs.iloc[[0]].assign(run_id="rerun", start_time=runs["start_time"].max() + 1)
-    again["params.network.width"] = "64"
     kept, notes = comparable_runs(pd.concat([runs, again], ignore_index=True))
     assert len(kept) == len(runs)
     assert "rerun" in set(kept["run_id"]) and runs.iloc[0]["run_id"] not in set(kept["run_id"])
+    assert set(kept["settings"]) == {""}
     env, ctrl, seed = runs.iloc[0][["env", "controller", "seed"]]
     assert f"{env}/{ctrl} seed {seed}: 2 runs, only the latest one counts" in notes
-    assert any(f"{env}/{ctrl}: runs differ in network.width" in n for n in notes)
+
+
+def test_comparable_runs_never_mix_settings(store_uri: str) -> None:
+    runs = RunStore(store_uri, EXPERIMENT).runs()
+    wide = runs.iloc[[0]].assign(run_id="wide", start_time=runs["start_time"].max() + 1)
+    wide["params.network.width"] = "64"
+    kept, notes = comparable_runs(pd.concat([runs, wide], ignore_index=True))
+    assert len(kept) == len(runs) + 1  # same seed, other width: its own group, not a rerun
+    width = runs.iloc[0]["params.network.width"]
+    assert kept.loc[kept["run_id"] == "wide", "settings"].item() == "network.width=64"
+    assert set(kept["settings"]) == {"network.width=64", f"network.width={width}"}
+    assert any("differ in network.width: 2 groups" in n and "--where" in n for n in notes)
 
 
 def test_table_equals_direct_computation_and_bolds_best(

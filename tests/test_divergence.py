@@ -201,9 +201,10 @@ def test_multirun_goes_on_and_summarises_failures(tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = proc.stdout
     assert f"cdqn multirun {sweep}: 2 jobs: 1 FAILED, 1 FINISHED" in out
-    assert re.search(r"0  FAILED    run \w+  train.lr=0.05 controller=none", out), out
+    score = r"score +-?\d+\.\d\d \((not solved|solved at episode \d+)\)"
+    assert re.search(rf"0  FAILED    run \w+  {score}  train.lr=0.05 controller=none", out), out
     assert "-> diverged: |Q| = " in out
-    assert re.search(r"1  FINISHED  run \w+  train.lr=5e-0?5 controller=none", out), out
+    assert re.search(rf"1  FINISHED  run \w+  {score}  train.lr=5e-0?5 controller=none", out), out
 
     jobs = json.loads((sweep / "summary.json").read_text())
     assert [j["status"] for j in jobs] == ["FAILED", "FINISHED"]

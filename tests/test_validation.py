@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 
 import pytest
@@ -46,6 +47,9 @@ BAD = [
     (["seed=1.5"], ["seed=1.5", "takes int"]),
     (["network.width=[1"], ["network.width=[1", "cannot parse"]),
     (["resume=abc", "train.lr=0.1"], ["train.lr=0.1", "resume=<run_id> continues"]),
+    (["seed=-1"], ["seed=-1", ">= 0"]),
+    (["resume="], ["resume=''", "give the MLflow run id", "resume=<run_id>"]),
+    (["env.id=Taxi-v3"], ["env.id='Taxi-v3'", "not a registered", "did you mean Taxi-v4?"]),
 ]
 
 
@@ -123,7 +127,18 @@ CLI = [
         "  - train.discount=1.5: the discount γ must lie in (0, 1]\n"
         "  - train.eps_start=-1.0: ε must lie in [0, 1]",
     ),
+    (["seed=-1"], "seed=-1: must be >= 0"),
+    (["resume="], "resume='': give the MLflow run id of the run to continue, resume=<run_id>"),
+    (["env.id=Taxi-v3"], "env.id='Taxi-v3' is not a registered gymnasium environment; did you "),
 ]
+if importlib.util.find_spec("Box2D") is None:  # the optional dependency missing, as here
+    CLI.append(
+        (
+            ["env.id=LunarLander-v3"],
+            "env.id='LunarLander-v3' needs an optional package that is not installed; pip "
+            'install swig, then pip install "gymnasium[box2d]"',
+        )
+    )
 
 
 @pytest.mark.parametrize(("overrides", "expected"), CLI, ids=[o[0] for o, _ in CLI])
@@ -132,6 +147,7 @@ def test_cli_refuses_bad_config(overrides: list[str], expected: str, tmp_path: P
     assert proc.returncode == EXIT_CONFIG, proc.stderr
     assert expected in proc.stderr
     assert "Traceback" not in proc.stderr + proc.stdout
+    assert len(proc.stderr.strip().splitlines()) == 1 + expected.count("\n") + 1  # head + items
     assert not (tmp_path / "m.db").exists()
 
 
