@@ -73,6 +73,14 @@ SETTINGS = (
     "train.bootstrap_terminal",
     "env.max_episode_steps",
     "env.obs_indices",
+    "env.normalize",
+    "weights.target.gamma_eff",
+    "weights.target.step_scale",
+    "weights.target.rho_cap",
+    "weights.replay.repeats",
+    "weights.replay.last",
+    "weights.replay.when",
+    "controller.discount",
 )
 """Tags and params that change results: runs of one environment that differ in any of them
 are never averaged together (:func:`comparable_runs` puts them into separate groups)."""
