@@ -66,7 +66,7 @@ def test_dynamic_design_passes_certificate_and_is_cached(cache: Path) -> None:
     A, B, C = (np.asarray(record[k]) for k in "ABC")
     n = A.shape[0]
     assert n >= 1 and B.shape == (n, 3) and C.shape == (1, n)
-    assert record["theta_bounds"] == {"theta1": [220.0, 340.0], "ratio": [0.95, 1.05]}
+    assert record["theta_bounds"] == {"theta1": [210.0, 270.0], "ratio": [0.995, 1.005]}
     assert record["details"]["order"] <= record["details"]["full_order"]
     for name in (
         "controller.json",
