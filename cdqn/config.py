@@ -119,8 +119,8 @@ class LearningTarget:
     inside these ranges (for a dynamic controller: its DC gain from [Q1, Q2] to u).
     """
 
-    gamma_eff: list[float] = field(default_factory=lambda: [-3.0, -2.0])
-    """[lower, upper] of the effective discount γ_eff = (γ − k2)/(1 + k1)."""
+    gamma_eff: list[float] = field(default_factory=lambda: [-1.0, -0.95])
+    """[lower, upper] of the effective discount γ_eff = (γ − k2)/(1 + k1), within [−1, 1]."""
     step_scale: list[float] = field(default_factory=lambda: [0.6, 1.0])
     """[lower, upper] of the step scale 1 + k1 (> 0)."""
     rho_cap: float | None = None

@@ -138,9 +138,18 @@ def learning_target(K: ControllerMatrices, discount: float, box: NTKBox, lr: flo
 
 
 def check_target(target: TargetBox, box: NTKBox, scheduled: bool = False) -> None:
-    """Refuse a target no controller can keep stable over the box (module docstring): the
+    """Refuse a target outside ``|γ_eff| ≤ 1`` (the effective Bellman operator expands
+    beyond it) and one no controller can keep stable over the box (module docstring): the
     whole γ_eff range at or above ``1/ρ_max`` (for a ``scheduled`` controller with a ρ cap,
     a cap ≥ 1)."""
+    lo, hi = target.gamma_eff
+    if lo < -1.0 or hi > 1.0:
+        raise DesignError(
+            f"weights.target.gamma_eff={list(target.gamma_eff)}: need -1 <= γ_eff <= 1; the "
+            "effective Bellman operator r/(1 + k1) + γ_eff·max Q(s') is a contraction only for "
+            "|γ_eff| < 1, and learning that once solved CartPole with γ_eff = −2.5 collapsed "
+            "when its episodes stopped terminating (docs/learning.md)"
+        )
     rho_max = box.ratio[1]
     if scheduled and target.rho_cap is not None:
         if not 0.0 < target.rho_cap < 1.0:
