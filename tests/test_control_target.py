@@ -23,7 +23,7 @@ FAST = [
     "controller.synthesis.restarts=1",
     "controller.synthesis.grid=[9,9]",
 ]
-TARGET = ["weights.target.gamma_eff=[-2.0,-1.0]", "weights.target.step_scale=[0.5,0.9]"]
+TARGET = ["weights.target.gamma_eff=[-0.9,-0.5]", "weights.target.step_scale=[0.5,0.9]"]
 """A target unlike every shipped one, so that keeping it is the design's doing."""
 
 
@@ -35,12 +35,12 @@ def _conf(kind: str, extra: list[str]) -> Config:
 def _inside(k1: float, k2: float, discount: float = 1.0) -> bool:
     scale = 1.0 + k1
     g_eff = (discount - k2) / scale
-    return -2.0 - 1e-9 <= g_eff <= -1.0 + 1e-9 and 0.5 - 1e-9 <= scale <= 0.9 + 1e-9
+    return -0.9 - 1e-9 <= g_eff <= -0.5 + 1e-9 and 0.5 - 1e-9 <= scale <= 0.9 + 1e-9
 
 
 def test_projection_moves_gains_into_the_target_and_keeps_those_inside() -> None:
-    target = TargetBox((-2.0, -1.0), (0.5, 0.9))
-    assert target.project(-0.3, 2.05, 1.0) == pytest.approx((-0.3, 2.05))  # inside: kept
+    target = TargetBox((-0.9, -0.5), (0.5, 0.9))
+    assert target.project(-0.3, 1.49, 1.0) == pytest.approx((-0.3, 1.49))  # inside: kept
     for k1, k2 in [(49.0, 0.998), (0.0, 0.0), (-0.95, 5.0), (-3.0, 1.0), (2.0, -7.0)]:
         p1, p2 = target.project(k1, k2, 1.0)
         assert _inside(p1, p2)
@@ -55,7 +55,7 @@ def test_synthesised_designs_keep_the_learning_target(kind: str, tmp_path: Path)
     record, folder, _ = load_or_design(inputs, tmp_path)
     assert record["certificate"]["passed"]
     lt = record["learning_target"]
-    assert lt["target"] == {"gamma_eff": [-2.0, -1.0], "step_scale": [0.5, 0.9]}
+    assert lt["target"] == {"gamma_eff": [-0.9, -0.5], "step_scale": [0.5, 0.9]}
     n = len(record["A"])
     K = ControllerMatrices(
         np.asarray(record["A"], float).reshape(n, n),
@@ -84,11 +84,19 @@ def test_gain_scheduled_h2_keeps_the_target_at_every_point_and_is_certified() ->
     )  # fmt: skip
     assert all(_inside(k1, k2) for k1, k2, _ in gains)
     lo, hi = setup.design["learning_target"]["gamma_eff"]
-    assert -2.0 - 1e-9 <= lo <= hi <= -1.0 + 1e-9
+    assert -0.9 - 1e-9 <= lo <= hi <= -0.5 + 1e-9
     # the runtime controller applies the same gains
     ctrl = setup.controller
     ctrl.step(0.0, 0.0, 0.0, *pts[3])
     assert ctrl.gains == pytest.approx(tuple(gains[3]))
+
+
+@pytest.mark.parametrize("kind", ["hinf_f", "hinf", "h2"])
+def test_an_expansive_effective_discount_is_refused(kind: str) -> None:
+    """|γ_eff| > 1: the effective Bellman operator is no contraction."""
+    conf = _conf(kind, ["weights.target.gamma_eff=[-3.0,-2.5]", "controller.synthesis.cache=false"])
+    with pytest.raises(DesignError, match=r"weights\.target\.gamma_eff=\[-3\.0, -2\.5\]: need -1"):
+        make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
 
 
 @pytest.mark.parametrize("kind", ["hinf_f", "hinf", "h2"])
@@ -144,7 +152,7 @@ def test_every_run_records_what_its_design_keeps(tracking_uri: str) -> None:
                           f"tracking.uri={tracking_uri}"])  # fmt: skip
     result = run(cfg, progress=False)
     tags = MlflowClient(tracking_uri).get_run(result.run_id).data.tags
-    assert -2.0 <= float(tags["design_gamma_eff"]) <= -1.0
+    assert -0.9 <= float(tags["design_gamma_eff"]) <= -0.5
     assert 0.5 <= float(tags["design_step_scale"]) <= 0.9
     assert float(tags["design_worst_pole"]) < 0
     assert 0 < float(tags["design_max_step_gain"]) < 2
