@@ -538,7 +538,7 @@ def train_members(
         results[m.seed] = RunResult(
             m.recorder.run_id, m.status, m.score, m.reason, returns=list(m.returns),
             steps=m.signals.n, seconds=seconds, rate=m.signals.n / seconds,
-            epsilon=float(pop.explore.epsilon[j]), solve_threshold=conf.env.solve_threshold,
+            epsilon=float(pop.epsilon[j]), solve_threshold=conf.env.solve_threshold,
         )  # fmt: skip
 
     with stop:

@@ -219,6 +219,11 @@ class ControlledPopulation:
     def __len__(self) -> int:
         return len(self.x_e)
 
+    @property
+    def epsilon(self) -> np.ndarray:
+        """Each member's ε after the decisions drawn so far."""
+        return self.explore.epsilon
+
     def start_episode(self, i: int) -> None:
         if self.reset_integrator:
             self.x_e[i] = 0.0

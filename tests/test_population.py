@@ -150,7 +150,15 @@ def _population(overrides: list[str], seeds: list[int]) -> list[Member]:
         ("cartpole", "h2", []),
         ("acrobot", "hinf", []),
         ("mountaincar", "hinf", ["network.dtype=float32"]),
-        ("cartpole", "h2", ["controller.h2_gain_map=paper", "train.bootstrap_terminal=true"]),
+        (
+            "cartpole",
+            "h2",
+            [
+                "controller.design=paper",
+                "controller.h2_gain_map=paper",
+                "train.bootstrap_terminal=true",
+            ],
+        ),
         (
             "cartpole",
             "hinf_f",

@@ -311,10 +311,12 @@ def _design_hinf(inputs: DesignInputs, samples: np.ndarray, cover: CoverFit) -> 
     if chosen is None:
         if last is None:
             raise DesignError(
-                f"hinf design: with the learning target {inputs.target.to_dict()} (if any) no "
-                f"share λ in {list(DYNAMIC_SHARES)} of the synthesised dynamics (and of its "
-                f"integral gain, {list(INTEGRAL_SHARES)}) leaves an instantaneous gain that "
-                "stabilises the box; widen weights.target or narrow the box"
+                f"hinf design for the box Θ1 ∈ {list(inputs.box.theta1)}, Θ2/Θ1 ∈ "
+                f"{list(inputs.box.ratio)} failed its certificate: with the learning target "
+                f"{inputs.target.to_dict() if inputs.target else None}, every instantaneous "
+                f"gain left by the shares λ in {list(DYNAMIC_SHARES)} of the synthesised "
+                f"dynamics (and {list(INTEGRAL_SHARES)} of its integral gain) is off the target "
+                "or unstable on the box; widen weights.target or narrow the box"
             )
         K, cert = last
     else:
