@@ -18,9 +18,11 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import os
 import re
 import sys
 import typing
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -53,6 +55,10 @@ EXIT_CONFIG = 2
 """Exit status of a command refused for its configuration."""
 MAX_COMPOSITIONS = 64
 """A multirun is checked with at most this many compositions (each swept value once)."""
+
+warnings.filterwarnings(  # the user preset folder on the search path need not exist
+    "ignore", message=r"provider=hydra\.searchpath in main, path=.* is not available"
+)
 
 _HYDRA_ONLY_FLAGS = {
     "-h", "--help", "--hydra-help", "-i", "--info", "--version", "-c", "--cfg", "--resolve",
@@ -154,11 +160,20 @@ def _group_errors(parsed: list[Override]) -> list[str]:
         group = ov.key_or_group
         if group not in groups or ov.is_delete() or ov.package is not None:
             continue
-        options = sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
+        options = sorted(
+            {p.stem for d in (CONF_DIR, *preset_dirs()) for p in (d / group).glob("*.yaml")}
+        )
         for value in _values(ov) or []:
             if value not in options:
                 errors.append(f"{group}={value}: unknown {group}; allowed: {', '.join(options)}")
     return errors
+
+
+def preset_dirs() -> list[Path]:
+    """User config folders on Hydra's search path (``hydra.searchpath`` in conf/config.yaml):
+    ``$CDQN_PRESETS``, else ``presets`` in the working folder; ``python -m cdqn.tune`` writes
+    its presets there (``presets/weights/<name>.yaml`` → ``weights=<name>``)."""
+    return [Path(os.environ.get("CDQN_PRESETS", "presets"))]
 
 
 def _values(ov: Override) -> list[str] | None:

@@ -308,9 +308,16 @@ class PopulationResult:
         )
 
 
-def run_population(cfg: DictConfig, progress: bool = True) -> PopulationResult:
+def run_population(
+    cfg: DictConfig,
+    progress: bool = True,
+    observe: Callable[[Member], None] | None = None,
+    should_stop: Callable[[], bool] | None = None,
+) -> PopulationResult:
     """Train seeds ``seed … seed+population−1`` of ``cfg``, each as its own MLflow run
-    (module docstring)."""
+    (module docstring).  ``observe(member)`` is called after each recorded episode and a
+    true ``should_stop()`` ends the population as a signal does (members KILLED); both
+    serve :mod:`cdqn.tune` (intermediate values, pruning) on the batched path."""
     from cdqn.train import RunResult, run  # noqa: PLC0415
 
     conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
@@ -355,6 +362,8 @@ def run_population(cfg: DictConfig, progress: bool = True) -> PopulationResult:
     def on_episode(m: Member, stats: object) -> None:
         assert m.recorder is not None
         m.recorder.log_episode(stats)  # type: ignore[arg-type]
+        if observe is not None:
+            observe(m)
 
     stop = GracefulStop()
 
@@ -381,7 +390,9 @@ def run_population(cfg: DictConfig, progress: bool = True) -> PopulationResult:
                 on_episode=on_episode,
                 on_member_end=on_member_end,
                 progress=progress and conf.train.progress,
-                should_stop=stop.requested,
+                should_stop=stop.requested
+                if should_stop is None
+                else lambda: stop.requested() or should_stop(),
                 replay=conf.weights.replay,
             )
         except BaseException as err:  # close the members' runs that are still open
