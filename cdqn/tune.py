@@ -290,6 +290,10 @@ class Tracker:
         self.experiment_id = (
             exp.experiment_id if exp is not None else self.client.create_experiment(experiment)
         )
+        # MLflow 3's UI then opens the experiment as model training (runs table), not GenAI
+        self.client.set_experiment_tag(
+            self.experiment_id, "mlflow.experimentKind", "custom_model_development"
+        )
 
     def parent(self, study: Any, conf: TuneConfig, cfg: DictConfig) -> str:
         """The study's parent run: created at the first start, reopened on a restart."""
@@ -492,6 +496,7 @@ class Study:
             log.info("trial %d infeasible: %s", trial.number, err)
             raise optuna.TrialPruned(reason) from None
         except BaseException as err:
+            trial.set_user_attr("status", "failed")
             self.tracker.end(child, "FAILED", "failed", f"{type(err).__name__}: {err}")
             raise
         self._log_design(child, setup)
@@ -586,18 +591,16 @@ class Study:
         # a restarted study continues the sampler's stream instead of repeating its start
         study.sampler = optuna.samplers.TPESampler(seed=t.sampler_seed + len(study.trials))
         self.parent = self.tracker.parent(study, self.conf, self.cfg)
-        # a trial cut short (process killed, or a signal) is tried again with its spec
+        # a trial a signal cut short is tried again with its specification (a killed
+        # process: Optuna's heartbeat fails it after the grace period and retries it)
+        retried = list(study.user_attrs.get("retried", []))
         for tr in study.get_trials(deepcopy=False):
-            if tr.state == TrialState.RUNNING:
-                study._storage.set_trial_state_values(tr._trial_id, TrialState.FAIL)
-                tr = study._storage.get_trial(tr._trial_id)
-                if tr.user_attrs.get("mlflow_run"):
-                    self.tracker.end(tr.user_attrs["mlflow_run"], "KILLED", "failed",
-                                     "the process ended during the trial")  # fmt: skip
-            if tr.state == TrialState.FAIL and not tr.user_attrs.get("retried"):
-                study._storage.set_trial_user_attr(tr._trial_id, "retried", True)
+            interrupted = tr.user_attrs.get("status") in ("interrupted", "failed")
+            if tr.state == TrialState.FAIL and interrupted and tr.number not in retried:
+                retried.append(tr.number)
                 if tr.params:
                     study.enqueue_trial(tr.params)
+        study.set_user_attr("retried", retried)
         done = [tr for tr in study.get_trials(deepcopy=False)
                 if tr.state in (TrialState.COMPLETE, TrialState.PRUNED)]  # fmt: skip
         remaining = max(0, t.trials - len(done))
@@ -617,6 +620,7 @@ class Study:
 
         t = self.conf.tune
         trials = study.get_trials(deepcopy=False)
+        retried = study.user_attrs.get("retried", [])
         count = {s: 0 for s in STATUSES}
         for tr in trials:
             if tr.state == TrialState.COMPLETE:
@@ -624,7 +628,7 @@ class Study:
             elif tr.state == TrialState.PRUNED:
                 infeasible = tr.user_attrs.get("status") == "infeasible"
                 count["infeasible" if infeasible else "pruned"] += 1
-            elif tr.state == TrialState.FAIL and not tr.user_attrs.get("retried"):
+            elif tr.state == TrialState.FAIL and tr.number not in retried:
                 count["failed"] += 1
         metrics = {f"trials_{k}": float(v) for k, v in count.items()}
         metrics["wall_seconds"] = wall
@@ -642,7 +646,7 @@ class Study:
         metrics["best_final_score"] = best.user_attrs.get("final_score", float("nan"))
         self.tracker.client.set_tag(self.parent, "best_trial", str(best.number))
         self.tracker.log_params(self.parent, {f"best.{k}": v for k, v in best.params.items()})
-        cfg = self.specified(best.params, t.eval_seed, t.eval_seeds)
+        cfg = self.specified(best.params, t.eval_seed, max(1, t.eval_seeds))
         name = t.preset or f"tuned_{t.study}"
         preset = write_preset(cfg, name, Path(t.preset_dir), best, self.conf)
         self.tracker.client.log_artifact(self.parent, str(preset), "preset")
@@ -769,13 +773,31 @@ class Study:
             self.tracker.client.log_artifacts(self.parent, tmp, "study")
 
 
-def _storage(url: str) -> str:
-    """An SQLite URL with a relative path made absolute (the folder is created)."""
+HEARTBEAT = 60
+"""Seconds between a running trial's heartbeats; a trial silent for 3 of them is stale."""
+
+
+def _storage(url: str) -> Any:
+    """Optuna storage of ``url``: an SQLite path made absolute (its folder created), with
+    heartbeats so that a trial whose process died is failed and retried once
+    (``RetryFailedTrialCallback``) when the study runs again."""
+    import warnings  # noqa: PLC0415
+
+    import optuna  # noqa: PLC0415
+
+    warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
     if url.startswith("sqlite:///") and not url.startswith("sqlite:////"):
         path = Path(url[len("sqlite:///") :]).resolve()
         path.parent.mkdir(parents=True, exist_ok=True)
-        return f"sqlite:///{path}"
-    return url
+        url = f"sqlite:///{path}"
+    if not url.startswith(("sqlite:", "postgresql", "mysql")):
+        return url
+    return optuna.storages.RDBStorage(
+        url,
+        heartbeat_interval=HEARTBEAT,
+        grace_period=3 * HEARTBEAT,
+        failed_trial_callback=optuna.storages.RetryFailedTrialCallback(max_retry=1),
+    )
 
 
 def write_preset(cfg: DictConfig, name: str, folder: Path, best: Any, conf: TuneConfig) -> Path:
@@ -791,8 +813,9 @@ def write_preset(cfg: DictConfig, name: str, folder: Path, best: Any, conf: Tune
         f"# Tuned for env.id={c.env.id} env.max_episode_steps={c.env.max_episode_steps} "
         f"controller={c.controller.name} network.width={c.network.width} "
         f"train.lr={c.train.lr:g} train.discount={c.train.discount:g}",
-        f"# Train with: python -m cdqn.train env.id={c.env.id} controller={c.controller.name} "
-        f"weights={name}",
+        f"# Train with: python -m cdqn.train env.id={c.env.id} "
+        f"env.max_episode_steps={c.env.max_episode_steps} controller={c.controller.name} "
+        f"network.width={c.network.width} train.eps_dec={c.train.eps_dec:g} weights={name}",
         f"# Specification: {json.dumps(best.params)}",
     ]
     out.write_text("\n".join(header) + "\n" + OmegaConf.to_yaml(OmegaConf.create(weights)))

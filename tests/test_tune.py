@@ -169,3 +169,43 @@ def test_cli_refuses_overlapping_seeds(tmp_path: Path) -> None:
     assert proc.returncode == 2
     assert "tune.eval_seed=2" in proc.stderr and "overlap" in proc.stderr
     assert not (tmp_path / "optuna.db").exists()
+
+
+@pytest.mark.slow
+def test_interrupted_study_continues_with_the_cut_trial(tmp_path: Path) -> None:
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    args = [
+        *_overrides(tmp_path, "cut", 1, ["tune.episodes=400", "tune.eval_seeds=0"]),
+        "hydra.run.dir=" + str(tmp_path / "out"),
+    ]
+    log = (tmp_path / "first.log").open("w")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cdqn.tune", *args],
+        cwd=REPO,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    deadline = time.time() + 240
+    while "MLflow run" not in (tmp_path / "first.log").read_text():  # the population trains
+        assert proc.poll() is None and time.time() < deadline, (tmp_path / "first.log").read_text()
+        time.sleep(0.5)
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGINT)  # a real signal: the population stops, the study exits
+    assert proc.wait(timeout=240) == 130, (tmp_path / "first.log").read_text()
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    (cut,) = optuna.load_study(study_name="cut", storage=storage).trials
+    assert cut.state == optuna.trial.TrialState.FAIL and cut.user_attrs["status"] == "interrupted"
+    (run,) = _runs(tmp_path, kind="trial")
+    assert run.info.status == "KILLED" and run.data.tags["trial_status"] == "failed"
+
+    over = _overrides(tmp_path, "cut", 1, ["tune.episodes=20", "tune.eval_seeds=0"])
+    summary = _study(over)  # the same command again: the cut specification is trained
+    study = optuna.load_study(study_name="cut", storage=storage)
+    assert [t.state.name for t in study.trials] == ["FAIL", "COMPLETE"]
+    assert study.trials[1].params == cut.params and study.user_attrs["retried"] == [0]
+    assert summary["counts"]["complete"] == 1 and summary["counts"]["failed"] == 0
