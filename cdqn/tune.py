@@ -27,8 +27,8 @@ importances as artifacts, the best preset and its fresh-seed evaluation), one ch
 trial (specification, design record and certificate, objective, ``trial_status`` = complete /
 pruned / infeasible / failed), the members' runs nested under their trial.  The best
 specification is written as a ``weights`` preset ``<tune.preset_dir>/weights/<name>.yaml``
-(``python -m cdqn.train weights=<name>`` finds it there; ``hydra.searchpath`` in
-conf/config.yaml) and trained again on ``tune.eval_seeds`` fresh seeds from
+(``python -m cdqn.train weights=<name> hydra.searchpath=[file://<preset_dir>]``) and
+trained again on ``tune.eval_seeds`` fresh seeds from
 ``tune.eval_seed``.
 """
 
@@ -815,7 +815,8 @@ def write_preset(cfg: DictConfig, name: str, folder: Path, best: Any, conf: Tune
         f"train.lr={c.train.lr:g} train.discount={c.train.discount:g}",
         f"# Train with: python -m cdqn.train env.id={c.env.id} "
         f"env.max_episode_steps={c.env.max_episode_steps} controller={c.controller.name} "
-        f"network.width={c.network.width} train.eps_dec={c.train.eps_dec:g} weights={name}",
+        f"network.width={c.network.width} train.eps_dec={c.train.eps_dec:g} weights={name} "
+        f"hydra.searchpath=[file://{folder.resolve()}]",
         f"# Specification: {json.dumps(best.params)}",
     ]
     out.write_text("\n".join(header) + "\n" + OmegaConf.to_yaml(OmegaConf.create(weights)))

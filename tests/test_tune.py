@@ -4,7 +4,6 @@ real MLflow store and a real Optuna SQLite storage."""
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -106,8 +105,7 @@ def test_study_end_to_end_resume_and_preset(tmp_path: Path) -> None:
     # the preset trains with python -m cdqn.train weights=<name>
     preset = Path(second["preset"])
     assert preset == tmp_path / "presets" / "weights" / "tuned_tiny.yaml"
-    env = {**os.environ, "CDQN_PRESETS": str(tmp_path / "presets")}
-    proc = _train_with_env(env, tmp_path)
+    proc = _train_with_preset(tmp_path)
     assert proc.returncode == 0, proc.stderr
     tc = MlflowClient(f"sqlite:///{tmp_path / 'train.db'}")
     (trained,) = tc.search_runs([tc.get_experiment_by_name("cdqn").experiment_id])
@@ -118,7 +116,7 @@ def test_study_end_to_end_resume_and_preset(tmp_path: Path) -> None:
     )
 
 
-def _train_with_env(env: dict, tmp: Path):
+def _train_with_preset(tmp: Path):
     import subprocess
     import sys
 
@@ -128,6 +126,7 @@ def _train_with_env(env: dict, tmp: Path):
             "-m",
             "cdqn.train",
             "weights=tuned_tiny",
+            f"hydra.searchpath=[file://{tmp / 'presets'}]",
             "controller=hinf_f",
             "controller.design=synthesize",
             f"controller.synthesis.cache_dir={tmp / 'cache'}",
@@ -137,7 +136,6 @@ def _train_with_env(env: dict, tmp: Path):
             f"tracking.uri=sqlite:///{tmp / 'train.db'}",
         ],
         cwd=REPO,
-        env=env,
         capture_output=True,
         text=True,
         timeout=300,
