@@ -19,9 +19,11 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import os
 import re
 import sys
 import typing
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -54,6 +56,10 @@ EXIT_CONFIG = 2
 """Exit status of a command refused for its configuration."""
 MAX_COMPOSITIONS = 64
 """A multirun is checked with at most this many compositions (each swept value once)."""
+
+warnings.filterwarnings(  # the user preset folder on the search path need not exist
+    "ignore", message=r"provider=hydra\.searchpath in main, path=.* is not available"
+)
 
 _HYDRA_ONLY_FLAGS = {
     "-h", "--help", "--hydra-help", "-i", "--info", "--version", "-c", "--cfg", "--resolve",
@@ -172,7 +178,7 @@ def check_overrides(
         except OverrideParseException as err:
             first = str(err).splitlines()[0]
             return [f"{text}: cannot parse ({first}); see Hydra's override grammar"]
-    errors = _group_errors(parsed)
+    errors = _group_errors(parsed, preset_dirs(parsed, config_name))
     if config_name == "config" and any(o.key_or_group == "resume" for o in parsed):
         if any(o.key_or_group == "resume" and not str(o.value() or "").strip() for o in parsed):
             errors.append(
@@ -204,18 +210,36 @@ def resume_conflicts(overrides: list[str]) -> list[str]:
     ]
 
 
-def _group_errors(parsed: list[Override]) -> list[str]:
+def _group_errors(parsed: list[Override], presets: list[Path]) -> list[str]:
     groups = {d.name for d in CONF_DIR.iterdir() if d.is_dir()}
     errors = []
     for ov in parsed:
         group = ov.key_or_group
         if group not in groups or ov.is_delete() or ov.package is not None:
             continue
-        options = sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
+        options = sorted({p.stem for d in (CONF_DIR, *presets) for p in (d / group).glob("*.yaml")})
         for value in _values(ov) or []:
             if value not in options:
                 errors.append(f"{group}={value}: unknown {group}; allowed: {', '.join(options)}")
     return errors
+
+
+def preset_dirs(parsed: list[Override], config_name: str = "config") -> list[Path]:
+    """User config folders on Hydra's search path: the ``file://`` entries of a
+    ``hydra.searchpath=[...]`` override (``python -m cdqn.train weights=<preset>
+    hydra.searchpath=[file://presets]``); ``python -m cdqn.tune`` has
+    ``$CDQN_PRESETS`` (else ``presets``) on it by default (conf/tune.yaml)."""
+    dirs = []
+    for ov in parsed:
+        if ov.get_key_element() == "hydra.searchpath":
+            value = ov.value()
+            entries = value if isinstance(value, list) else [value]
+            dirs += [
+                Path(str(e)[len("file://") :]) for e in entries if str(e).startswith("file://")
+            ]
+    if config_name == "tune" and not dirs:
+        dirs.append(Path(os.environ.get("CDQN_PRESETS", "presets")))
+    return dirs
 
 
 def _values(ov: Override) -> list[str] | None:
@@ -232,7 +256,7 @@ def _jobs(parsed: list[Override], texts: list[str], multirun: bool) -> list[list
     base: list[str] = []
     variants: list[tuple[int, list[str]]] = []
     for ov, text in zip(parsed, texts, strict=True):
-        if ov.is_hydra_override():
+        if ov.is_hydra_override() and ov.get_key_element() != "hydra.searchpath":
             continue
         if not (multirun and ov.is_sweep_override()):
             base.append(text)

@@ -396,9 +396,16 @@ class PopulationResult:
         )
 
 
-def run_population(cfg: DictConfig, progress: bool = True) -> PopulationResult:
+def run_population(
+    cfg: DictConfig,
+    progress: bool = True,
+    observe: Callable[[Member], None] | None = None,
+    should_stop: Callable[[], bool] | None = None,
+) -> PopulationResult:
     """Train seeds ``seed … seed+population−1`` of ``cfg``, each as its own MLflow run
-    (module docstring)."""
+    (module docstring).  ``observe(member)`` is called after each recorded episode and a
+    true ``should_stop()`` ends the population as a signal does (members KILLED); both
+    serve :mod:`cdqn.tune` (intermediate values, pruning) on the batched path."""
     from cdqn.train import RunResult, run  # noqa: PLC0415
 
     conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
@@ -451,7 +458,9 @@ def run_population(cfg: DictConfig, progress: bool = True) -> PopulationResult:
         for env in venv.envs:
             env.close()
         raise
-    signum = train_members(conf, agent, venv, members, results, progress)
+    signum = train_members(
+        conf, agent, venv, members, results, progress, observe=observe, should_stop=should_stop
+    )
     return PopulationResult([results[s] for s in sorted(results)], signum)
 
 
@@ -464,6 +473,8 @@ def train_members(
     progress: bool,
     sequence: int = 0,
     stores: dict[int, CheckpointStore] | None = None,
+    observe: Callable[[Member], None] | None = None,
+    should_stop: Callable[[], bool] | None = None,
 ) -> int | None:
     """Train ``members`` (their runs open) to the end, with checkpoints (every
     ``train.checkpoint_every`` episodes of the slowest member and on SIGINT/SIGTERM, see
@@ -512,6 +523,8 @@ def train_members(
         assert m.recorder is not None
         if stats.episode not in m.logged:  # type: ignore[attr-defined]
             m.recorder.log_episode(stats)  # type: ignore[arg-type]
+        if observe is not None:
+            observe(m)
 
     stop = GracefulStop()
     t0 = time.perf_counter()
@@ -553,7 +566,9 @@ def train_members(
                 on_episode=on_episode,
                 on_member_end=on_member_end,
                 progress=progress and conf.train.progress,
-                should_stop=stop.requested,
+                should_stop=stop.requested
+                if should_stop is None
+                else lambda: stop.requested() or should_stop(),
                 on_checkpoint=on_checkpoint if venv.checkpointable else None,
                 checkpoint_every=conf.train.checkpoint_every,
                 replay=conf.weights.replay if conf.controller.name != "ddqn" else None,

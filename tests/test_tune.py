@@ -1,0 +1,209 @@
+"""``python -m cdqn.tune``: an Optuna study of certified designs, each trial a population, in a
+real MLflow store and a real Optuna SQLite storage."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import optuna
+import pytest
+from hydra import compose, initialize_config_dir
+from mlflow.tracking import MlflowClient
+
+from cdqn.tune import Study, area, ma100, padded, summary_text
+from tests.conftest import CONF_DIR
+from tests.helpers import run_cli
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _overrides(tmp: Path, study: str, trials: int, extra: list[str] | None = None) -> list[str]:
+    return [
+        f"tracking.uri=sqlite:///{tmp / 'mlflow.db'}",
+        f"tune.storage=sqlite:///{tmp / 'optuna.db'}",
+        f"tune.preset_dir={tmp / 'presets'}",
+        f"controller.synthesis.cache_dir={tmp / 'cache'}",
+        "network.width=16",
+        f"tune.study={study}",
+        f"tune.trials={trials}",
+        "tune.seeds=2",
+        "tune.episodes=12",
+        "tune.eval_seeds=2",
+        "tune.pruner.interval=4",
+        "tune.pruner.startup_trials=1",
+        "tune.pruner.warmup_episodes=4",
+        # two feasible centres of γ_eff, the step scale around the CartPole design's
+        "tune.space.gamma_eff.low=-3.0",
+        "tune.space.gamma_eff.high=-2.5",
+        "tune.space.step_scale.low=0.6",
+        "tune.space.step_scale.high=0.8",
+        "~tune.space.w_p",
+        *(extra or []),
+    ]
+
+
+def _study(overrides: list[str]) -> dict:
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        cfg = compose("tune", overrides=overrides)
+    return Study(cfg).run()
+
+
+def _runs(tmp: Path, **tags: str) -> list:
+    client = MlflowClient(f"sqlite:///{tmp / 'mlflow.db'}")
+    exp = client.get_experiment_by_name("cdqn-tune")
+    query = " and ".join(f"tags.{k} = '{v}'" for k, v in tags.items())
+    return client.search_runs([exp.experiment_id], query, max_results=1000)
+
+
+def test_objective_is_the_mean_area_under_ma100() -> None:
+    r = [0.0, 10.0, 20.0]
+    assert ma100(r).tolist() == [0.0, 5.0, 10.0]
+    assert area([r, [30.0, 30.0, 30.0]]) == pytest.approx((5.0 + 30.0) / 2)
+    assert padded([3.0, 1.0], 4, failed=True) == [3.0, 1.0, 1.0, 1.0]
+    assert padded([3.0, 1.0], 4, failed=False) is None
+    assert ma100(list(range(150)))[-1] == pytest.approx(np.mean(range(50, 150)))
+
+
+@pytest.mark.slow
+def test_study_end_to_end_resume_and_preset(tmp_path: Path) -> None:
+    first = _study(_overrides(tmp_path, "tiny", 2))
+    assert sum(first["counts"].values()) == 2
+    parent = first["parent_run"]
+    # run again with more trials: the same study (storage) and parent run continue
+    second = _study(_overrides(tmp_path, "tiny", 3))
+    assert second["parent_run"] == parent
+    study = optuna.load_study(study_name="tiny", storage=f"sqlite:///{tmp_path / 'optuna.db'}")
+    assert len(study.trials) == 3
+    assert study.trials[2].params != study.trials[0].params  # the sampler continued
+    assert second["counts"]["complete"] >= 1
+
+    trials = _runs(tmp_path, kind="trial")
+    assert sorted(r.data.tags["trial"] for r in trials) == ["0", "1", "2"]
+    for r in trials:
+        assert r.data.tags["mlflow.parentRunId"] == parent
+        assert r.data.tags["trial_status"] in ("complete", "pruned")
+        assert r.data.tags["certificate"] == "PASSED"
+        assert {"gamma_eff", "step_scale", "replay"} <= set(r.data.params)
+        members = _runs(tmp_path, **{"mlflow.parentRunId": r.info.run_id})
+        assert len(members) == 2
+        if r.data.tags["trial_status"] == "complete":
+            assert r.info.status == "FINISHED" and "objective" in r.data.metrics
+            assert {m.info.status for m in members} == {"FINISHED"}
+    client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    run = client.get_run(parent)
+    assert run.info.status == "FINISHED"
+    assert run.data.metrics["best_value"] == pytest.approx(second["best_value"])
+    assert "eval_objective" in run.data.metrics
+    arts = {a.path for a in client.list_artifacts(parent, "study")}
+    assert {"study/optimization_history.png", "study/trials.json"} <= arts
+    ev = second["evaluation"]
+    assert ev["seeds"] == [1000, 1001] and np.isfinite(ev["objective"])
+    assert "best trial" in summary_text(second)
+
+    # the preset trains with python -m cdqn.train weights=<name>
+    preset = Path(second["preset"])
+    assert preset == tmp_path / "presets" / "weights" / "tuned_tiny.yaml"
+    proc = _train_with_preset(tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    tc = MlflowClient(f"sqlite:///{tmp_path / 'train.db'}")
+    (trained,) = tc.search_runs([tc.get_experiment_by_name("cdqn").experiment_id])
+    assert trained.data.params["weights.name"] == "tuned_tiny"
+    best_centre = second["best_params"]["gamma_eff"]
+    assert json.loads(trained.data.params["weights.target.gamma_eff"]) == pytest.approx(
+        [best_centre - 0.5, best_centre + 0.5]
+    )
+
+
+def _train_with_preset(tmp: Path):
+    import subprocess
+    import sys
+
+    return subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "cdqn.train",
+            "weights=tuned_tiny",
+            f"hydra.searchpath=[file://{tmp / 'presets'}]",
+            "controller=hinf_f",
+            "controller.design=synthesize",
+            f"controller.synthesis.cache_dir={tmp / 'cache'}",
+            "network.width=16",
+            "train.episodes=3",
+            "train.progress=false",
+            f"tracking.uri=sqlite:///{tmp / 'train.db'}",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
+def test_infeasible_specification_is_pruned_with_its_reason(tmp_path: Path) -> None:
+    over = _overrides(tmp_path, "infeasible", 1, [
+        "~tune.space.step_scale",
+        "~tune.space.replay",
+        "tune.space.gamma_eff.choices=[2.5]",  # γ_eff ∈ [2, 3] > 1/ρ_max of the box
+    ])  # fmt: skip
+    summary = _study(over)
+    assert summary["counts"] == {"complete": 0, "pruned": 0, "infeasible": 1, "failed": 0}
+    study = optuna.load_study(study_name="infeasible",
+                              storage=f"sqlite:///{tmp_path / 'optuna.db'}")  # fmt: skip
+    (trial,) = study.trials
+    assert trial.state == optuna.trial.TrialState.PRUNED
+    assert "conflicts with the NTK box" in trial.user_attrs["reason"]
+    (run,) = _runs(tmp_path, kind="trial")
+    assert run.data.tags["trial_status"] == "infeasible"
+    assert "1/ρ_max" in run.data.tags["reason"]
+    assert not _runs(tmp_path, **{"mlflow.parentRunId": run.info.run_id})  # never trained
+    assert not (tmp_path / "presets").exists()
+
+
+def test_cli_refuses_overlapping_seeds(tmp_path: Path) -> None:
+    proc = run_cli("cdqn.tune", ["tune.seed=0", "tune.seeds=3", "tune.eval_seed=2"], tmp_path)
+    assert proc.returncode == 2
+    assert "tune.eval_seed=2" in proc.stderr and "overlap" in proc.stderr
+    assert not (tmp_path / "optuna.db").exists()
+
+
+@pytest.mark.slow
+def test_interrupted_study_continues_with_the_cut_trial(tmp_path: Path) -> None:
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    args = [
+        *_overrides(tmp_path, "cut", 1, ["tune.episodes=400", "tune.eval_seeds=0"]),
+        "hydra.run.dir=" + str(tmp_path / "out"),
+    ]
+    log = (tmp_path / "first.log").open("w")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cdqn.tune", *args],
+        cwd=REPO,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    deadline = time.time() + 240
+    while "MLflow run" not in (tmp_path / "first.log").read_text():  # the population trains
+        assert proc.poll() is None and time.time() < deadline, (tmp_path / "first.log").read_text()
+        time.sleep(0.5)
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGINT)  # a real signal: the population stops, the study exits
+    assert proc.wait(timeout=240) == 130, (tmp_path / "first.log").read_text()
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    (cut,) = optuna.load_study(study_name="cut", storage=storage).trials
+    assert cut.state == optuna.trial.TrialState.FAIL and cut.user_attrs["status"] == "interrupted"
+    (run,) = _runs(tmp_path, kind="trial")
+    assert run.info.status == "KILLED" and run.data.tags["trial_status"] == "failed"
+
+    over = _overrides(tmp_path, "cut", 1, ["tune.episodes=20", "tune.eval_seeds=0"])
+    summary = _study(over)  # the same command again: the cut specification is trained
+    study = optuna.load_study(study_name="cut", storage=storage)
+    assert [t.state.name for t in study.trials] == ["FAIL", "COMPLETE"]
+    assert study.trials[1].params == cut.params and study.user_attrs["retried"] == [0]
+    assert summary["counts"]["complete"] == 1 and summary["counts"]["failed"] == 0
