@@ -35,8 +35,8 @@ def _overrides(tmp: Path, study: str, trials: int, extra: list[str] | None = Non
         "tune.pruner.startup_trials=1",
         "tune.pruner.warmup_episodes=4",
         # two feasible centres of γ_eff, the step scale around the CartPole design's
-        "tune.space.gamma_eff.low=-3.0",
-        "tune.space.gamma_eff.high=-2.5",
+        "tune.space.gamma_eff.low=-0.95",
+        "tune.space.gamma_eff.high=-0.6",
         "tune.space.step_scale.low=0.6",
         "tune.space.step_scale.high=0.8",
         "~tune.space.w_p",
@@ -146,7 +146,7 @@ def test_infeasible_specification_is_pruned_with_its_reason(tmp_path: Path) -> N
     over = _overrides(tmp_path, "infeasible", 1, [
         "~tune.space.step_scale",
         "~tune.space.replay",
-        "tune.space.gamma_eff.choices=[2.5]",  # γ_eff ∈ [2, 3] > 1/ρ_max of the box
+        "tune.space.gamma_eff.choices=[0.9]",  # γ_eff ∈ [0.85, 0.95] > 1/ρ_max = 1/1.2
     ])  # fmt: skip
     summary = _study(over)
     assert summary["counts"] == {"complete": 0, "pruned": 0, "infeasible": 1, "failed": 0}
