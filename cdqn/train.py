@@ -34,7 +34,6 @@ from hydra.types import RunMode
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
-from omegaconf.errors import OmegaConfBaseException
 
 from cdqn.agents import Agent, make_agent
 from cdqn.callbacks import record_job
@@ -55,7 +54,7 @@ from cdqn.interrupt import GracefulStop
 from cdqn.network import NetworkSpec, QNetwork, save_network
 from cdqn.ntk_bounds import measured_box
 from cdqn.population import resume_population, run_population
-from cdqn.population_checkpoint import population_runs
+from cdqn.population_checkpoint import population_runs, stored_config
 from cdqn.signals import SignalBuffer
 from cdqn.sweep import (
     config_hash,
@@ -65,7 +64,6 @@ from cdqn.sweep import (
     resumable_elsewhere,
 )
 from cdqn.tracking import (
-    CONFIG_ARTIFACT,
     Recorder,
     TrackingError,
     TrackingOutage,
@@ -311,23 +309,7 @@ def resume(cfg: DictConfig, progress: bool = True) -> RunResult:
             "continuing it. Stop any process still training it first.",
             run_id,
         )
-    with tempfile.TemporaryDirectory() as tmp:
-        try:
-            path = client.download_artifacts(run_id, CONFIG_ARTIFACT, tmp)
-        except Exception:
-            raise ConfigError(
-                f"resume={run_id}: the run has no {CONFIG_ARTIFACT} artifact, so it cannot be "
-                "rebuilt (was it started by cdqn.train?)"
-            ) from None
-        try:
-            stored = OmegaConf.merge(OmegaConf.structured(Config), OmegaConf.load(path))
-        except OmegaConfBaseException as err:
-            raise ConfigError(
-                f"resume={run_id}: its {CONFIG_ARTIFACT} does not fit this version of cdqn "
-                f"({' '.join(str(err).split())})"
-            ) from None
-    stored.resume = None
-    stored.tracking = cfg.tracking
+    stored = stored_config(client, run_id, cfg.tracking)
     conf: Config = OmegaConf.to_object(stored)  # type: ignore[assignment]
     validate(conf)
     env = make_env(conf.env)
