@@ -112,7 +112,7 @@ def test_study_end_to_end_resume_and_preset(tmp_path: Path) -> None:
     assert trained.data.params["weights.name"] == "tuned_tiny"
     best_centre = second["best_params"]["gamma_eff"]
     assert json.loads(trained.data.params["weights.target.gamma_eff"]) == pytest.approx(
-        [best_centre - 0.5, best_centre + 0.5]
+        [best_centre - 0.05, best_centre + 0.05]
     )
 
 
