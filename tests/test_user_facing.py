@@ -85,7 +85,7 @@ def test_population_members_are_labelled_as_single_runs(store) -> None:
     drop = {"population", "mlflow.runName", "mlflow.user", "mlflow.source.name"}
     tags = {k: v for k, v in single.data.tags.items() if k not in drop and "mlflow" not in k}
     assert {k: v for k, v in member.data.tags.items() if k in tags} == tags
-    assert set(member.data.tags) - set(single.data.tags) == {"population"}
+    assert set(member.data.tags) - set(single.data.tags) == {"population", "population_id"}
     same = {k for k in single.data.params if k != "train.keep_checkpoints"}
     assert {k: member.data.params[k] for k in same} == {k: single.data.params[k] for k in same}
 
