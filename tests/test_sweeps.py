@@ -246,7 +246,9 @@ def test_a_killed_sweep_started_again_continues_its_runs(tmp_path: Path) -> None
     try:
         while proc.poll() is None and time.monotonic() < deadline:
             time.sleep(0.2)
-            if not (folders["killed"] / "mlflow.db").exists():
+            # open the store only once the sweep has created it (its jobs have started):
+            # two processes migrating one new SQLite store at once can break it
+            if not any((folders["killed"] / "multirun").glob("*/.hydra")):
                 continue
             try:
                 runs = _runs(uri)
