@@ -25,9 +25,9 @@ interruption is tried again with the same specification.
 Trials in parallel: every process given the same study and storage is an Optuna worker;
 Hydra's launcher starts them (``python -m cdqn.tune -m hydra/launcher=local
 tune.worker=0,1 ...``).  The workers claim trials one at a time under a lock next to the
-storage until the study has ``tune.trials`` of them (exactly), share the study's MLflow parent
-run and worker 0, once no trial of any worker runs any more, writes the plots, the preset and
-the fresh-seed evaluation.
+storage until the study has ``tune.trials`` of them (exactly) and share the study's MLflow
+parent run; once no trial of any worker runs any more, worker 0 writes the plots, the preset
+and the fresh-seed evaluation.
 
 MLflow: one parent run per study (settings, best value, optimisation history and parameter
 importances as artifacts, the best preset and its fresh-seed evaluation), one child run per
