@@ -22,6 +22,13 @@ pruner).  The study lives in ``tune.storage`` (SQLite): running the command agai
 same study name continues it, up to ``tune.trials`` trials in all; a trial cut short by an
 interruption is tried again with the same specification.
 
+Trials in parallel: every process given the same study and storage is an Optuna worker;
+Hydra's launcher starts them (``python -m cdqn.tune -m hydra/launcher=local
+tune.worker=0,1 ...``).  The workers claim trials one at a time under a lock next to the
+storage until the study has ``tune.trials`` of them (exactly) and share the study's MLflow
+parent run; once no trial of any worker runs any more, worker 0 writes the plots, the preset
+and the fresh-seed evaluation.
+
 MLflow: one parent run per study (settings, best value, optimisation history and parameter
 importances as artifacts, the best preset and its fresh-seed evaluation), one child run per
 trial (specification, design record and certificate, objective, ``trial_status`` = complete /
@@ -36,6 +43,7 @@ from __future__ import annotations
 
 import copy
 import csv
+import hashlib
 import json
 import logging
 import math
@@ -55,6 +63,11 @@ from omegaconf import DictConfig, OmegaConf, read_write
 
 from cdqn.config import Config, ConfigError, register_configs, resolve_tracking_uri, validate
 from cdqn.control.errors import DesignError
+
+try:
+    import fcntl
+except ImportError:  # Windows: one worker per study
+    fcntl = None  # type: ignore[assignment]
 
 log = logging.getLogger("cdqn.tune")
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
@@ -118,6 +131,9 @@ class TuneSettings:
     """A controller (e.g. ddqn) trained on the evaluation seeds beside the best design."""
     sampler_seed: int = 0
     """Seed of Optuna's TPE sampler."""
+    worker: int = 0
+    """Index of this process among the study's parallel workers (``-m tune.worker=0,1``);
+    worker 0 waits for the others' trials and writes the plots, preset and evaluation."""
     pruner: PrunerConfig = field(default_factory=PrunerConfig)
     space: dict[str, ParamSpec] = field(default_factory=dict)
     """The search space, name → :class:`ParamSpec`."""
@@ -154,7 +170,8 @@ def validate_tune(conf: TuneConfig) -> None:
         )
     for key, value, lo in (("trials", t.trials, 1), ("seeds", t.seeds, 1),
                            ("episodes", t.episodes, 1), ("eval_seeds", t.eval_seeds, 0),
-                           ("pruner.interval", t.pruner.interval, 1)):  # fmt: skip
+                           ("pruner.interval", t.pruner.interval, 1),
+                           ("worker", t.worker, 0)):  # fmt: skip
         if value < lo:
             errors.append(f"tune.{key}={value}: must be an integer >= {lo}")
     if t.pruner.kind not in ("median", "none"):
@@ -302,6 +319,8 @@ class Tracker:
         run_id = study.user_attrs.get("mlflow_parent")
         if run_id is not None:
             try:
+                if self.client.get_run(run_id).info.status == "RUNNING":
+                    return run_id  # another worker of the study has it open
                 self.client.update_run(run_id, status="RUNNING")
                 self.client.set_tag(run_id, "resumed", time.strftime("%Y-%m-%dT%H:%M:%S"))
                 return run_id
@@ -478,9 +497,12 @@ class Study:
         t = self.conf.tune
         params = sample(trial, self.space)
         child = self.tracker.child(
-            self.parent, f"trial-{trial.number}", {"trial": str(trial.number), "study": t.study}
+            self.parent,
+            f"trial-{trial.number}",
+            {"trial": str(trial.number), "study": t.study, "worker": str(t.worker)},
         )
         trial.set_user_attr("mlflow_run", child)
+        trial.set_user_attr("worker", t.worker)
         self.tracker.log_params(child, params)
         try:
             cfg = self.specified(params, t.seed, t.seeds)
@@ -571,7 +593,6 @@ class Study:
         from optuna.trial import TrialState  # noqa: PLC0415
 
         t = self.conf.tune
-        self.tracker = Tracker(self.uri, self.conf.tracking.experiment)
         pruner: optuna.pruners.BasePruner = (
             optuna.pruners.MedianPruner(
                 n_startup_trials=t.pruner.startup_trials,
@@ -580,40 +601,94 @@ class Study:
             if t.pruner.kind == "median"
             else optuna.pruners.NopPruner()
         )
-        storage = _storage(t.storage)
-        study = optuna.create_study(
-            study_name=t.study,
-            storage=storage,
-            direction="maximize",
-            pruner=pruner,
-            load_if_exists=True,
+        lock = StudyLock(t.storage)
+        with lock:  # workers starting at once: one creates the storage, study and parent run
+            self.tracker = Tracker(self.uri, self.conf.tracking.experiment)
+            study = optuna.create_study(
+                study_name=t.study,
+                storage=_storage(t.storage),
+                direction="maximize",
+                pruner=pruner,
+                load_if_exists=True,
+            )
+            self.parent = self.tracker.parent(study, self.conf, self.cfg)
+            # a trial a signal cut short is tried again with its specification (a killed
+            # process: Optuna's heartbeat fails it after the grace period and retries it)
+            retried = list(study.user_attrs.get("retried", []))
+            for tr in study.get_trials(deepcopy=False):
+                interrupted = tr.user_attrs.get("status") in ("interrupted", "failed")
+                if tr.state == TrialState.FAIL and interrupted and tr.number not in retried:
+                    retried.append(tr.number)
+                    if tr.params:
+                        study.enqueue_trial(tr.params)
+            study.set_user_attr("retried", retried)
+            done = sum(tr.state in (TrialState.COMPLETE, TrialState.PRUNED)
+                       for tr in study.get_trials(deepcopy=False))  # fmt: skip
+            n_trials = len(study.trials)
+        # a restarted study continues the sampler's stream instead of repeating its start;
+        # workers draw distinct streams, and the constant liar keeps them off each other's
+        # running trials
+        study.sampler = optuna.samplers.TPESampler(
+            seed=t.sampler_seed + n_trials + WORKER_SEED_STRIDE * t.worker, constant_liar=True
         )
-        # a restarted study continues the sampler's stream instead of repeating its start
-        study.sampler = optuna.samplers.TPESampler(seed=t.sampler_seed + len(study.trials))
-        self.parent = self.tracker.parent(study, self.conf, self.cfg)
-        # a trial a signal cut short is tried again with its specification (a killed
-        # process: Optuna's heartbeat fails it after the grace period and retries it)
-        retried = list(study.user_attrs.get("retried", []))
-        for tr in study.get_trials(deepcopy=False):
-            interrupted = tr.user_attrs.get("status") in ("interrupted", "failed")
-            if tr.state == TrialState.FAIL and interrupted and tr.number not in retried:
-                retried.append(tr.number)
-                if tr.params:
-                    study.enqueue_trial(tr.params)
-        study.set_user_attr("retried", retried)
-        done = [tr for tr in study.get_trials(deepcopy=False)
-                if tr.state in (TrialState.COMPLETE, TrialState.PRUNED)]  # fmt: skip
-        remaining = max(0, t.trials - len(done))
-        log.info("study %s: %d trials done, %d to run", t.study, len(done), remaining)
+        log.info("study %s, worker %d (MLflow parent run %s): %d of %d trials done",
+                 t.study, t.worker, self.parent, done, t.trials)  # fmt: skip
         t0 = time.perf_counter()
         try:
-            study.optimize(self.objective, n_trials=remaining, catch=(RuntimeError,))
+            ran = self._trials(study, lock)
         except KeyboardInterrupt:
             self.tracker.client.set_tag(self.parent, "interrupted", "true")
             self.tracker.client.set_terminated(self.parent, "KILLED")
             raise
         wall = time.perf_counter() - t0
-        return self.close(study, wall)
+        if t.worker != 0:
+            log.info("worker %d ran trials %s; worker 0 closes the study", t.worker, ran)
+            return {"study": t.study, "worker": t.worker, "trials_run": ran,
+                    "wall_seconds": wall, "parent_run": self.parent}  # fmt: skip
+        summary = self.close(study, wall)
+        summary["trials_run"] = ran
+        return summary
+
+    def _trials(self, study: Any, lock: StudyLock) -> list[int]:
+        """Run trials until the study holds ``tune.trials`` complete, pruned or running ones.
+
+        Counting them and creating the next trial (``study.optimize``'s ask) happen under
+        ``lock``, so that workers never start more than ``tune.trials`` in all; the lock is
+        released as soon as the trial exists.  Worker 0 then waits until no trial of another
+        worker runs (a dead worker's trial is failed by the heartbeat and run again here).
+        Returns the numbers of the trials this worker ran."""
+        import optuna  # noqa: PLC0415
+        from optuna.trial import TrialState  # noqa: PLC0415
+
+        t = self.conf.tune
+        claimed = (TrialState.COMPLETE, TrialState.PRUNED, TrialState.RUNNING)
+        ran: list[int] = []
+
+        def objective(trial: Any) -> float:
+            lock.release()
+            ran.append(trial.number)
+            return self.objective(trial)
+
+        attempts, waiting = 0, False
+        while attempts < t.trials:  # at most tune.trials trials per worker (failed ones too)
+            lock.acquire()
+            try:
+                states = [tr.state for tr in study.get_trials(deepcopy=False)]
+                if sum(s in claimed for s in states) >= t.trials:
+                    if t.worker == 0 and TrialState.RUNNING in states:
+                        lock.release()
+                        if not waiting:
+                            log.info("worker 0: waiting for the running trials of other workers")
+                            waiting = True
+                        time.sleep(WAIT_SECONDS)
+                        optuna.storages.fail_stale_trials(study)
+                        continue
+                    break
+                attempts += 1
+                study.optimize(objective, n_trials=1, catch=(RuntimeError,))
+            finally:
+                lock.release()
+        return ran
 
     def close(self, study: Any, wall: float) -> dict[str, Any]:
         from optuna.trial import TrialState  # noqa: PLC0415
@@ -775,6 +850,49 @@ class Study:
 
 HEARTBEAT = 60
 """Seconds between a running trial's heartbeats; a trial silent for 3 of them is stale."""
+WAIT_SECONDS = 2.0
+"""Worker 0 polls the storage this often while other workers' trials run."""
+WORKER_SEED_STRIDE = 100_003
+"""Worker w's TPE sampler is seeded with ``tune.sampler_seed + trials so far + w·stride``."""
+
+
+class StudyLock:
+    """An exclusive lock (``fcntl.flock``) shared by the processes of one machine that use
+    the Optuna storage ``url``: the file ``<database>.tune-lock`` beside an SQLite storage,
+    else one in the temporary folder named by the URL's hash.  ``release`` of a lock not
+    held does nothing.  Without ``fcntl`` (Windows) it does nothing (one worker)."""
+
+    def __init__(self, url: str) -> None:
+        if url.startswith("sqlite:///"):
+            db = Path(url[len("sqlite:///") :]).resolve()  # as _storage resolves it
+            self.path = db.with_name(db.name + ".tune-lock")
+        else:
+            digest = hashlib.sha256(url.encode()).hexdigest()[:16]
+            self.path = Path(tempfile.gettempdir()) / f"cdqn-tune-{digest}.lock"
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._handle: Any = None
+
+    def acquire(self) -> None:
+        if self._handle is not None:
+            raise RuntimeError(f"{self.path}: the lock is already held by this process")
+        self._handle = self.path.open("a")
+        if fcntl is not None:
+            fcntl.flock(self._handle, fcntl.LOCK_EX)
+
+    def release(self) -> None:
+        if self._handle is None:
+            return
+        if fcntl is not None:
+            fcntl.flock(self._handle, fcntl.LOCK_UN)
+        self._handle.close()
+        self._handle = None
+
+    def __enter__(self) -> StudyLock:
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
 
 
 def _storage(url: str) -> Any:
@@ -825,6 +943,10 @@ def write_preset(cfg: DictConfig, name: str, folder: Path, best: Any, conf: Tune
 
 def summary_text(s: dict[str, Any]) -> str:
     """The printed summary of a study."""
+    if "counts" not in s:  # a worker other than 0
+        return (f"study {s['study']}, worker {s['worker']}: ran trials {s['trials_run']} in "
+                f"{s['wall_seconds']:.0f} s; MLflow parent run {s['parent_run']}; worker 0 "
+                "writes the preset and the evaluation")  # fmt: skip
     c = s["counts"]
     lines = [
         f"study {s['study']}: {sum(c.values())} trials ({c['complete']} complete, "
@@ -851,7 +973,7 @@ def check_tune(cfg: DictConfig) -> None:
     validate_tune(OmegaConf.to_object(cfg))  # type: ignore[arg-type]
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="tune")
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="tune")
 def main(cfg: DictConfig) -> None:
     try:
         summary = Study(cfg).run()
@@ -870,4 +992,8 @@ if __name__ == "__main__":
     from cdqn.cli import preflight  # noqa: PLC0415
 
     preflight(sys.argv[1:], config_name="tune", check=check_tune)
-    main()
+    # the module's own main, not __main__'s: the joblib launcher's workers (tune.worker=0,1)
+    # then import the task function and the config schema instead of unpickling copies
+    from cdqn.tune import main as tune_main  # noqa: PLC0415
+
+    tune_main()

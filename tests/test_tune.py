@@ -207,3 +207,63 @@ def test_interrupted_study_continues_with_the_cut_trial(tmp_path: Path) -> None:
     assert [t.state.name for t in study.trials] == ["FAIL", "COMPLETE"]
     assert study.trials[1].params == cut.params and study.user_attrs["retried"] == [0]
     assert summary["counts"]["complete"] == 1 and summary["counts"]["failed"] == 0
+
+
+def test_cli_refuses_a_negative_worker_index(tmp_path: Path) -> None:
+    proc = run_cli("cdqn.tune", ["-m", "tune.worker=0,-1"], tmp_path)
+    assert proc.returncode == 2
+    assert "tune.worker=-1: must be an integer >= 0" in proc.stderr
+    assert not (tmp_path / "optuna.db").exists()
+
+
+@pytest.mark.slow
+def test_two_workers_through_the_joblib_launcher_share_one_study(tmp_path: Path) -> None:
+    """A real multirun (hydra-joblib-launcher, two processes, ``tune.worker=0,1``) of a
+    5-trial study: exactly 5 trials in all, both workers ran trials at the same time, one
+    MLflow parent run that every trial and the one evaluation are children of."""
+    import os
+    import subprocess
+    import sys
+
+    args = [
+        "-m",
+        "hydra/launcher=local",
+        "hydra.launcher.n_jobs=2",
+        "tune.worker=0,1",
+        f"hydra.sweep.dir={tmp_path / 'multirun'}",
+        *_overrides(
+            tmp_path,
+            "par",
+            5,
+            ["tune.episodes=30", "tune.pruner.interval=10", "tune.pruner.warmup_episodes=10"],
+        ),  # fmt: skip
+    ]
+    env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.run([sys.executable, "-m", "cdqn.tune", *args], cwd=REPO, env=env,
+                          capture_output=True, text=True, timeout=1200)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+
+    study = optuna.load_study(study_name="par", storage=f"sqlite:///{tmp_path / 'optuna.db'}")
+    trials = study.trials
+    assert sorted(t.number for t in trials) == [0, 1, 2, 3, 4]  # exactly tune.trials
+    assert {t.state.name for t in trials} <= {"COMPLETE", "PRUNED"}
+    by_worker = {w: [t for t in trials if t.user_attrs["worker"] == w] for w in (0, 1)}
+    assert by_worker[0] and by_worker[1]
+    assert any(a.datetime_start < b.datetime_complete and b.datetime_start < a.datetime_complete
+               for a in by_worker[0] for b in by_worker[1])  # fmt: skip  # in parallel
+
+    (parent,) = _runs(tmp_path, kind="tune")
+    assert parent.info.status == "FINISHED"
+    assert study.user_attrs["mlflow_parent"] == parent.info.run_id
+    assert parent.data.metrics["trials_complete"] + parent.data.metrics["trials_pruned"] == 5
+    runs = _runs(tmp_path, kind="trial")
+    assert sorted(int(r.data.tags["trial"]) for r in runs) == [0, 1, 2, 3, 4]
+    assert {r.data.tags["mlflow.parentRunId"] for r in runs} == {parent.info.run_id}
+    assert {r.data.tags["worker"] for r in runs} == {"0", "1"}
+    (evaluation,) = _runs(tmp_path, kind="evaluation")  # written once, by worker 0
+    assert evaluation.data.tags["mlflow.parentRunId"] == parent.info.run_id
+    assert (tmp_path / "presets" / "weights" / "tuned_par.yaml").is_file()
+    logs = sorted((tmp_path / "multirun").glob("*/tune.log"))
+    assert len(logs) == 2
+    for log in logs:  # each worker found the same parent run through the study
+        assert f"(MLflow parent run {parent.info.run_id})" in log.read_text()
