@@ -17,10 +17,11 @@ curve, normalised by the number of episodes,
 i.e. the average moving-average return over training: it rewards learning fast (early
 episodes count) and well (late ones too).  A member that diverges keeps its lowest return for
 its missing episodes.  Every ``tune.pruner.interval`` episodes the same quantity over the
-first ``e`` episodes is reported to Optuna, which prunes trials that lose clearly (median
-pruner).  The study lives in ``tune.storage`` (SQLite): running the command again with the
-same study name continues it, up to ``tune.trials`` trials in all; a trial cut short by an
-interruption is tried again with the same specification.
+first ``n`` episodes, J_n, is reported to Optuna; :class:`EpisodeMedianPruner` stops a trial
+whose J_n is below the median J_n of the complete trials (the same episodes, like for like).
+The study lives in ``tune.storage`` (SQLite): running the command again with the same study
+name continues it, up to ``tune.trials`` trials in all; a trial cut short by an interruption
+is tried again with the same specification.
 
 Trials in parallel: every process given the same study and storage is an Optuna worker;
 Hydra's launcher starts them (``python -m cdqn.tune -m hydra/launcher=local
@@ -60,6 +61,7 @@ import hydra
 import numpy as np
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf, read_write
+from optuna.pruners import BasePruner, NopPruner
 
 from cdqn.config import Config, ConfigError, register_configs, resolve_tracking_uri, validate
 from cdqn.control.errors import DesignError
@@ -100,7 +102,8 @@ class ParamSpec:
 @dataclass
 class PrunerConfig:
     kind: str = "median"
-    """median (Optuna's MedianPruner) or none."""
+    """median (:class:`EpisodeMedianPruner`: J over the episodes so far against the median of
+    the complete trials' at the same episode) or none."""
     startup_trials: int = 3
     """Trials that complete before any is pruned."""
     warmup_episodes: int = 50
@@ -270,6 +273,46 @@ def padded(returns: list[float], n: int, failed: bool) -> list[float] | None:
 def area(curves: list[list[float]]) -> float:
     """Mean over members of the mean of MA100 over the episodes given (module docstring)."""
     return float(np.mean([ma100(r).mean() for r in curves]))
+
+
+class EpisodeMedianPruner(BasePruner):
+    """Optuna pruner: prune a trial whose latest intermediate value J_n (the objective over its
+    first n episodes) is below the median of the J_n of the study's complete trials, once
+    ``startup_trials`` trials are complete and from episode ``warmup_episodes`` on.
+
+    Optuna's own ``MedianPruner`` compares the trial's *best* value reported so far (for a
+    maximised objective, the largest) with that median, which suits a score that only
+    improves (accuracy after each epoch).  J_n is no such score: the first episodes, still
+    random play, often give the largest J_n of a trial (and with negative rewards, as in
+    Acrobot or MountainCar, J_n can fall all the time), so that a trial's best value is
+    often its random-play start and clearly losing trials go on to the end.  Here the
+    trial's J_n is compared with the complete trials' J_n at the same n."""
+
+    def __init__(self, startup_trials: int = 3, warmup_episodes: int = 50) -> None:
+        self.startup_trials = startup_trials
+        self.warmup_episodes = warmup_episodes
+
+    def prune(self, study: Any, trial: Any) -> bool:
+        from optuna.trial import TrialState  # noqa: PLC0415
+
+        n = trial.last_step
+        if n is None or n < self.warmup_episodes:
+            return False
+        complete = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
+        if not complete or len(complete) < self.startup_trials:
+            return False
+        others = [tr.intermediate_values[n] for tr in complete if n in tr.intermediate_values]
+        if not others or all(math.isnan(v) for v in others):
+            return False
+        value = trial.intermediate_values[n]
+        return math.isnan(value) or value < float(np.nanmedian(others))
+
+
+def make_pruner(settings: PrunerConfig) -> BasePruner:
+    """The study's pruner (``tune.pruner.kind``)."""
+    if settings.kind == "none":
+        return NopPruner()
+    return EpisodeMedianPruner(settings.startup_trials, settings.warmup_episodes)
 
 
 class Progress:
@@ -523,7 +566,10 @@ class Study:
             raise
         self._log_design(child, setup)
 
+        reported: dict[int, float] = {}
+
         def report(n: int, value: float) -> bool:
+            reported[n] = value
             trial.report(value, n)
             self.tracker.metrics(child, {"objective_partial": value}, step=n)
             return bool(trial.should_prune())
@@ -544,9 +590,13 @@ class Study:
         diverged = len(prog.failed)
         self.tracker.metrics(child, {"diverged_members": diverged})
         if pruned_at is not None:
-            reason = f"pruned at episode {pruned_at}: intermediate objective below the median"
+            reason = (f"pruned at episode {pruned_at}: J over the first {pruned_at} episodes "
+                      f"= {reported[pruned_at]:.2f}, below the median of the "
+                      "complete trials at that episode")  # fmt: skip
             self.tracker.nest(child, ids, reason)
             trial.set_user_attr("status", "pruned")
+            trial.set_user_attr("pruned_at", pruned_at)
+            trial.set_user_attr("reason", reason)
             self.tracker.end(child, "KILLED", "pruned", reason)
             raise optuna.TrialPruned(reason)
         self.tracker.nest(child, ids)
@@ -593,14 +643,7 @@ class Study:
         from optuna.trial import TrialState  # noqa: PLC0415
 
         t = self.conf.tune
-        pruner: optuna.pruners.BasePruner = (
-            optuna.pruners.MedianPruner(
-                n_startup_trials=t.pruner.startup_trials,
-                n_warmup_steps=t.pruner.warmup_episodes,
-            )
-            if t.pruner.kind == "median"
-            else optuna.pruners.NopPruner()
-        )
+        pruner = make_pruner(t.pruner)
         lock = StudyLock(t.storage)
         with lock:  # workers starting at once: one creates the storage, study and parent run
             self.tracker = Tracker(self.uri, self.conf.tracking.experiment)
@@ -898,7 +941,7 @@ class StudyLock:
 def _storage(url: str) -> Any:
     """Optuna storage of ``url``: an SQLite path made absolute (its folder created), with
     heartbeats so that a trial whose process died is failed and retried once
-    (``RetryFailedTrialCallback``) when the study runs again."""
+    (``RetryHeartbeatStaleTrialCallback``) when the study runs again."""
     import warnings  # noqa: PLC0415
 
     import optuna  # noqa: PLC0415
@@ -914,7 +957,9 @@ def _storage(url: str) -> Any:
         url,
         heartbeat_interval=HEARTBEAT,
         grace_period=3 * HEARTBEAT,
-        failed_trial_callback=optuna.storages.RetryFailedTrialCallback(max_retry=1),
+        heartbeat_stale_trial_callback=optuna.storages.RetryHeartbeatStaleTrialCallback(
+            max_retry=1
+        ),
     )
 
 

@@ -12,14 +12,23 @@ import pytest
 from hydra import compose, initialize_config_dir
 from mlflow.tracking import MlflowClient
 
-from cdqn.tune import Study, area, ma100, padded, summary_text
+from cdqn.tune import EpisodeMedianPruner, Study, area, ma100, padded, summary_text
 from tests.conftest import CONF_DIR
 from tests.helpers import run_cli
 
 REPO = Path(__file__).resolve().parents[1]
 
 
+def _store(uri: str, experiment: str, tmp: Path) -> None:
+    """Create the experiment of the store at ``uri`` with its artifacts under ``tmp`` (a
+    SQLite store's default artifact root is ./mlruns of the working folder)."""
+    client = MlflowClient(uri)
+    if client.get_experiment_by_name(experiment) is None:
+        client.create_experiment(experiment, (tmp / "mlartifacts").as_uri())
+
+
 def _overrides(tmp: Path, study: str, trials: int, extra: list[str] | None = None) -> list[str]:
+    _store(f"sqlite:///{tmp / 'mlflow.db'}", "cdqn-tune", tmp)
     return [
         f"tracking.uri=sqlite:///{tmp / 'mlflow.db'}",
         f"tune.storage=sqlite:///{tmp / 'optuna.db'}",
@@ -64,6 +73,118 @@ def test_objective_is_the_mean_area_under_ma100() -> None:
     assert padded([3.0, 1.0], 4, failed=True) == [3.0, 1.0, 1.0, 1.0]
     assert padded([3.0, 1.0], 4, failed=False) is None
     assert ma100(list(range(150)))[-1] == pytest.approx(np.mean(range(50, 150)))
+
+
+def _frozen(number: int, values: dict[int, float], complete: bool) -> optuna.trial.FrozenTrial:
+    state = optuna.trial.TrialState.COMPLETE if complete else optuna.trial.TrialState.RUNNING
+    trial = optuna.trial.create_trial(
+        state=state, value=max(values.values()) if complete else None,
+        intermediate_values=values,
+    )  # fmt: skip
+    trial.number = number
+    return trial
+
+
+def test_pruner_compares_the_current_value_at_the_same_episode() -> None:
+    """J_n of a trial whose first episodes gave its best value: Optuna's MedianPruner keeps it
+    (its best value beats the median), the project's pruner stops it (its J_n does not)."""
+    study = optuna.create_study(direction="maximize")
+    for i, values in enumerate(({25: 20.0, 50: 30.0}, {25: 21.0, 50: 32.0})):
+        study.add_trial(_frozen(i, values, complete=True))
+    losing = _frozen(2, {25: 40.0, 50: 15.0}, complete=False)  # random play, then worse
+    winning = _frozen(3, {25: 10.0, 50: 33.0}, complete=False)
+    ours = EpisodeMedianPruner(startup_trials=2, warmup_episodes=50)
+    assert ours.prune(study, losing) and not ours.prune(study, winning)
+    assert not optuna.pruners.MedianPruner(2, 50).prune(study, losing)
+    # before the warm-up, before startup_trials complete trials, at an episode no
+    # complete trial reported: never pruned
+    assert not EpisodeMedianPruner(2, 60).prune(study, losing)
+    assert not EpisodeMedianPruner(3, 50).prune(study, losing)
+    assert not ours.prune(study, _frozen(4, {25: 40.0, 40: 1.0}, complete=False))
+    # negative rewards: J_n falls for every trial; the lower one at the same episode loses
+    neg = optuna.create_study(direction="maximize")
+    neg.add_trial(_frozen(0, {25: -100.0, 50: -150.0}, complete=True))
+    one = EpisodeMedianPruner(startup_trials=1, warmup_episodes=50)
+    falling = _frozen(1, {25: -90.0, 50: -160.0}, complete=False)
+    assert one.prune(neg, falling) and not optuna.pruners.MedianPruner(1, 50).prune(neg, falling)
+    assert not one.prune(neg, _frozen(1, {25: -110.0, 50: -140.0}, complete=False))
+
+
+@pytest.mark.slow
+def test_clearly_losing_trial_is_pruned_at_an_intermediate_episode(tmp_path: Path) -> None:
+    """A real study of two specifications on the same CartPole seeds: γ_eff ≈ −0.9 learns
+    (J_n rises to 39.3, final MA100 36) and completes first; γ_eff ≈ 0.6 peaks at J_30 ≈ 40
+    during the early, mostly random episodes, then falls (J_80 ≈ 37.7 against 39.1; final
+    MA100 26 when trained to the end).  It is pruned at episode 80; Optuna's MedianPruner,
+    comparing its best value (the early peak), would have kept it."""
+    over = _overrides(tmp_path, "prune", 2, [
+        "~tune.space.step_scale",
+        "~tune.space.replay",
+        "tune.space.gamma_eff.choices=[-0.9,0.6]",
+        "tune.episodes=100",
+        "tune.eval_seeds=0",
+        "tune.pruner.interval=10",
+        "tune.pruner.warmup_episodes=80",
+        "train.lr=1e-3",      # learning (or failing) shows within 100 episodes
+        "train.eps_dec=1e-2",
+    ])  # fmt: skip
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    queued = optuna.create_study(study_name="prune", storage=storage, direction="maximize")
+    queued.enqueue_trial({"gamma_eff": -0.9})
+    queued.enqueue_trial({"gamma_eff": 0.6})
+    summary = _study(over)
+    assert summary["counts"] == {"complete": 1, "pruned": 1, "infeasible": 0, "failed": 0}
+    good, bad = optuna.load_study(study_name="prune", storage=storage).trials
+    assert good.params == {"gamma_eff": -0.9} and good.state.name == "COMPLETE"
+    assert sorted(good.intermediate_values) == list(range(10, 101, 10))
+    assert "final_score" in good.user_attrs
+    assert bad.params == {"gamma_eff": 0.6} and bad.state.name == "PRUNED"
+    assert bad.user_attrs["pruned_at"] == 80 == bad.last_step
+    assert bad.intermediate_values[80] < good.intermediate_values[80]
+    assert max(bad.intermediate_values.values()) > good.intermediate_values[80]
+    late = optuna.load_study(study_name="prune", storage=storage)
+    assert not optuna.pruners.MedianPruner(1, 80).prune(late, bad)  # the best-value rule
+    runs = {r.data.tags["trial"]: r for r in _runs(tmp_path, kind="trial")}
+    assert runs["1"].data.tags["trial_status"] == "pruned"
+    assert "pruned at episode 80" in runs["1"].data.tags["reason"]
+    members = _runs(tmp_path, **{"mlflow.parentRunId": runs["1"].info.run_id})
+    assert len(members) == 2 and "KILLED" in {m.info.status for m in members}
+    assert runs["0"].data.tags["trial_status"] == "complete"
+    assert not (REPO / "mlruns").exists() or not any(
+        (REPO / "mlruns").rglob(runs["0"].info.run_id)
+    )  # the artifacts went to the test's folder
+    assert (tmp_path / "mlartifacts").is_dir()
+
+
+@pytest.mark.filterwarnings("ignore:Heartbeat of storage:UserWarning")
+def test_a_stale_trial_is_retried_with_its_specification(monkeypatch, tmp_path: Path) -> None:
+    """The storage of a study: a trial whose process stopped beating (a killed worker) is
+    failed once its heartbeat is older than the grace period and queued again with its
+    specification, once; the storage is built without Optuna's deprecation warnings."""
+    import time
+    import warnings
+
+    import cdqn.tune as tune
+
+    monkeypatch.setattr(tune, "HEARTBEAT", 1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", FutureWarning)
+        storage = tune._storage(f"sqlite:///{tmp_path / 'optuna.db'}")
+    study = optuna.create_study(study_name="hb", storage=storage, direction="maximize")
+    trial = study.ask()
+    trial.suggest_float("gamma_eff", -0.9, 0.9)
+    storage.record_heartbeat(trial._trial_id)  # then the process dies
+    time.sleep(3 * tune.HEARTBEAT + 1.5)
+    optuna.storages.fail_stale_trials(study)
+    stale, retry = study.get_trials()
+    assert stale.state.name == "FAIL"
+    assert retry.state.name == "WAITING" and retry.params == stale.params
+    retried = study.ask()  # the retry runs first, with the same specification
+    assert retried.number == retry.number and retried.params == stale.params
+    storage.record_heartbeat(retried._trial_id)
+    time.sleep(3 * tune.HEARTBEAT + 1.5)
+    optuna.storages.fail_stale_trials(study)
+    assert [t.state.name for t in study.get_trials()] == ["FAIL", "FAIL"]  # once only
 
 
 @pytest.mark.slow
@@ -120,6 +241,7 @@ def _train_with_preset(tmp: Path):
     import subprocess
     import sys
 
+    _store(f"sqlite:///{tmp / 'train.db'}", "cdqn", tmp)
     return subprocess.run(
         [
             sys.executable,
@@ -134,6 +256,7 @@ def _train_with_preset(tmp: Path):
             "train.episodes=3",
             "train.progress=false",
             f"tracking.uri=sqlite:///{tmp / 'train.db'}",
+            f"hydra.run.dir={tmp / 'train-out'}",
         ],
         cwd=REPO,
         capture_output=True,
