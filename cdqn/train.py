@@ -36,9 +36,6 @@ from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
 from cdqn.agents import Agent, make_agent
-from cdqn.callbacks import record_job
-from cdqn.checkpoint import ROOT as CHECKPOINT_ROOT
-from cdqn.checkpoint import CheckpointStore, capture, load_local, local_path, restore, save_local
 from cdqn.cli import preflight, resume_conflicts
 from cdqn.config import (
     Config,
@@ -50,20 +47,31 @@ from cdqn.config import (
 from cdqn.control.errors import DesignError
 from cdqn.control.factory import ControllerSetup, make_controller
 from cdqn.envs import adopt_env_id, env_sizes, make_env
-from cdqn.interrupt import GracefulStop
 from cdqn.network import NetworkSpec, QNetwork, save_network
 from cdqn.ntk_bounds import measured_box
-from cdqn.population import resume_population, run_population
-from cdqn.population_checkpoint import population_runs, stored_config
-from cdqn.signals import SignalBuffer
-from cdqn.sweep import (
+from cdqn.training.callbacks import record_job
+from cdqn.training.checkpoint import ROOT as CHECKPOINT_ROOT
+from cdqn.training.checkpoint import (
+    CheckpointStore,
+    capture,
+    load_local,
+    local_path,
+    restore,
+    save_local,
+)
+from cdqn.training.interrupt import GracefulStop
+from cdqn.training.loop import DivergenceError, EpisodeStats, TrainState, train
+from cdqn.training.population import resume_population, run_population
+from cdqn.training.population_checkpoint import population_runs, stored_config
+from cdqn.training.signals import SignalBuffer
+from cdqn.training.sweep import (
     config_hash,
     ensure_store,
     finished_elsewhere,
     process_tags,
     resumable_elsewhere,
 )
-from cdqn.tracking import (
+from cdqn.training.tracking import (
     Recorder,
     TrackingError,
     TrackingOutage,
@@ -72,7 +80,6 @@ from cdqn.tracking import (
     flatten,
     git_commit,
 )
-from cdqn.trainer import DivergenceError, EpisodeStats, TrainState, train
 
 log = logging.getLogger("cdqn")
 register_configs()
@@ -215,14 +222,16 @@ def run(cfg: DictConfig, progress: bool = True) -> RunResult:
         return resume(cfg, progress)
     if (adopted := adopt_env_id(cfg)) is not None:
         log.info("%s", adopted)
-    if cfg.train.get("population", 1) > 1:  # K seeds as one batch (cdqn.population)
+    if cfg.train.get("population", 1) > 1:  # K seeds as one batch (cdqn.training.population)
         return run_population(cfg, progress).summary()
     conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
     validate(conf)
     env = make_env(conf.env)  # refuses unknown ids, continuous actions before any store is touched
     try:
         uri = resolve_tracking_uri(conf.tracking.uri)
-        if uri.startswith("sqlite:///") or conf.tracking.skip_finished:  # sweeps (cdqn.sweep)
+        if (
+            uri.startswith("sqlite:///") or conf.tracking.skip_finished
+        ):  # sweeps (cdqn.training.sweep)
             check_tracking(uri, conf.tracking.timeout)
             ensure_store(uri, conf.tracking.experiment)  # a fresh SQLite store, once
             if conf.tracking.skip_finished and (done := finished_elsewhere(cfg, uri)) is not None:

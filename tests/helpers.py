@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from cdqn.tracking import Recorder
-from cdqn.trainer import EpisodeStats
+from cdqn.training.loop import EpisodeStats
+from cdqn.training.tracking import Recorder
 
 
 def run_cli(

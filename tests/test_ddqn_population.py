@@ -11,13 +11,13 @@ from mlflow.tracking import MlflowClient
 from omegaconf import OmegaConf
 
 from cdqn.control.factory import make_controller
-from cdqn.ddqn_population import DDQNPopulation
 from cdqn.envs import make_env
 from cdqn.network import FastTwoLayer, NetworkSpec, QNetwork, double_dqn_step
-from cdqn.population import Member, build_population, run_population, train_population
-from cdqn.signals import SignalBuffer
 from cdqn.train import build
-from cdqn.trainer import TrainState, train
+from cdqn.training.ddqn_population import DDQNPopulation
+from cdqn.training.loop import TrainState, train
+from cdqn.training.population import Member, build_population, run_population, train_population
+from cdqn.training.signals import SignalBuffer
 from tests.conftest import compose_config
 from tests.test_population import _artifacts, _frame, _metrics
 

@@ -12,17 +12,17 @@ from cdqn.agents.base import EpsilonGreedy
 from cdqn.config import EnvConfig, TrainConfig
 from cdqn.control.factory import make_controller
 from cdqn.envs import make_env
-from cdqn.population import (
+from cdqn.train import build, run
+from cdqn.training.loop import DivergenceError, TrainState, train
+from cdqn.training.population import (
     Member,
     build_population,
     member_seeds,
     run_population,
     train_population,
 )
-from cdqn.population_step import ExplorationPlan
-from cdqn.signals import SignalBuffer
-from cdqn.train import build, run
-from cdqn.trainer import DivergenceError, TrainState, train
+from cdqn.training.population_step import ExplorationPlan
+from cdqn.training.signals import SignalBuffer
 from cdqn.vector_env import (
     ClassicControlTwin,
     GymLoop,

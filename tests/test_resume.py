@@ -16,10 +16,10 @@ import pandas as pd
 import pytest
 from mlflow.tracking import MlflowClient
 
-from cdqn.checkpoint import CheckpointStore
 from cdqn.config import ConfigError
-from cdqn.tracking import TrackingError
 from cdqn.train import run
+from cdqn.training.checkpoint import CheckpointStore
+from cdqn.training.tracking import TrackingError
 from tests.conftest import compose_config
 from tests.helpers import run_cli, signals_after_episode
 

@@ -19,8 +19,8 @@ from mlflow.tracking import MlflowClient
 
 from cdqn.config import EvaluateConfig, TrackingConfig
 from cdqn.evaluate import evaluate
-from cdqn.tracking import TrackingError, check_tracking
 from cdqn.train import run
+from cdqn.training.tracking import TrackingError, check_tracking
 from tests.conftest import TINY, compose_config
 from tests.helpers import (
     MlflowServer,

@@ -20,9 +20,9 @@ from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
 
 from cdqn.config import validate
-from cdqn.population import run_population
-from cdqn.sweep import PrepareStore, config_hash, ensure_store
 from cdqn.train import run
+from cdqn.training.population import run_population
+from cdqn.training.sweep import PrepareStore, config_hash, ensure_store
 from tests.conftest import CONF_DIR, compose_config
 
 ROOT = CONF_DIR.parent

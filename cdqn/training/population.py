@@ -3,7 +3,7 @@
 ``python -m cdqn.train train.population=10 seed=0`` trains seeds 0, 1, …, 9 together.  The
 members' networks are stacked and each step of all of them (forward passes, NTK,
 controllers, SGD steps, signal rows) is two compiled calls built from the row functions a
-single run uses (:mod:`cdqn.population_step`); their environments step as one
+single run uses (:mod:`cdqn.training.population_step`); their environments step as one
 (:mod:`cdqn.vector_env`).  So the per-step Python of the trainer, the environment and the
 bookkeeping is paid once for ``K`` members.
 
@@ -15,11 +15,11 @@ operation acts on each member's row alone, through the kernels a single run uses
 numbers are bit-identical (``tests/test_population.py``).
 
 :class:`ControlledPopulation` is the batched :class:`cdqn.agents.ControlledAgent` (fast path)
-for ``none``, ``h2``, ``hinf`` and ``hinf_f``, :class:`cdqn.ddqn_population.DDQNPopulation`
+for ``none``, ``h2``, ``hinf`` and ``hinf_f``, :class:`cdqn.training.ddqn_population.DDQNPopulation`
 the batched :class:`cdqn.agents.DDQNAgent`.  ``train.fast_path=false`` falls back to
 training the members one after another in the same process.
 
-A population checkpoints as a whole (:mod:`cdqn.population_checkpoint`): each time its
+A population checkpoints as a whole (:mod:`cdqn.training.population_checkpoint`): each time its
 slowest member has completed another ``train.checkpoint_every`` episodes, and when
 SIGINT/SIGTERM stops it (at the end of the current population step), every member's state
 goes into its own run's checkpoint slots and the members still training are closed KILLED
@@ -48,24 +48,25 @@ from tqdm.auto import tqdm
 
 from cdqn.agents.base import StepRecord
 from cdqn.agents.episodic_replay import PopulationTail, Transitions, qualifies
-from cdqn.checkpoint import ROOT as CHECKPOINT_ROOT
-from cdqn.checkpoint import CheckpointStore
 from cdqn.config import Config, ReplayConfig, resolve_tracking_uri, validate
 from cdqn.control.factory import ControllerSetup, make_controller
-from cdqn.ddqn_population import DDQNPopulation
 from cdqn.envs import env_sizes, make_env
-from cdqn.interrupt import GracefulStop
 from cdqn.network import NetworkSpec, QNetwork, save_network
-from cdqn.population_checkpoint import (
+from cdqn.training.checkpoint import ROOT as CHECKPOINT_ROOT
+from cdqn.training.checkpoint import CheckpointStore
+from cdqn.training.ddqn_population import DDQNPopulation
+from cdqn.training.interrupt import GracefulStop
+from cdqn.training.loop import DivergenceError, _diagnose, episode_stats
+from cdqn.training.population_checkpoint import (
     MemberCheckpoint,
     capture_member,
     common_sequence,
     restore_member,
     stored_config,
 )
-from cdqn.population_step import CHECK, DONE, ControlledPopulation
-from cdqn.signals import COLUMNS, SignalBuffer
-from cdqn.sweep import (
+from cdqn.training.population_step import CHECK, DONE, ControlledPopulation
+from cdqn.training.signals import COLUMNS, SignalBuffer
+from cdqn.training.sweep import (
     config_hash,
     ensure_store,
     final_score,
@@ -73,7 +74,7 @@ from cdqn.sweep import (
     find_resumable,
     process_tags,
 )
-from cdqn.tracking import (
+from cdqn.training.tracking import (
     Recorder,
     TrackingOutage,
     check_tracking,
@@ -81,7 +82,6 @@ from cdqn.tracking import (
     flatten,
     git_commit,
 )
-from cdqn.trainer import DivergenceError, _diagnose, episode_stats
 from cdqn.vector_env import VectorEnv, make_vector_env
 
 log = logging.getLogger("cdqn")
@@ -178,13 +178,13 @@ def train_population(
     checkpoint_every: int = 0,
     replay: ReplayConfig | None = None,
 ) -> None:
-    """The training loop of :func:`cdqn.trainer.train` for all members at once.
+    """The training loop of :func:`cdqn.training.loop.train` for all members at once.
 
     Each member's environment is seeded with its seed at its first episode.  A member that
     finishes its ``episodes`` or diverges leaves the batch (``on_member_end`` is called with
     the member, the agent and its row, before the row is dropped).  ``max_steps`` (for the
     benchmark) ends the loop after that many population steps.  ``replay``: episodic replay
-    after each member's qualifying episode, as :func:`cdqn.trainer.train` does it.
+    after each member's qualifying episode, as :func:`cdqn.training.loop.train` does it.
 
     ``on_checkpoint(items, obs, t, ret)`` (items: ``(row, member)`` pairs) is called between
     two steps, with every member's signal rows flushed: each time the slowest member has
@@ -358,8 +358,8 @@ def build_population(
 
 def batchable(conf: Config) -> bool:
     """Whether the members train as one batch: :class:`ControlledPopulation` (its
-    controllers are the runtime controllers :class:`cdqn.population_step.ControllerArrays`
-    knows) or :class:`cdqn.ddqn_population.DDQNPopulation`, both on the fast path, with one
+    controllers are the runtime controllers :class:`cdqn.training.population_step.ControllerArrays`
+    knows) or :class:`cdqn.training.ddqn_population.DDQNPopulation`, both on the fast path, with one
     design for all members (a measured NTK box builds each seed's design on its own network,
     :mod:`cdqn.ntk_bounds`)."""
     ctrl = conf.controller
@@ -439,7 +439,7 @@ def run_population(
         for m in members:
             results[m.seed] = run(m.cfg, progress=progress)
         return PopulationResult([results[s] for s in sorted(results)])
-    if conf.tracking.skip_finished:  # continue this job's KILLED members (cdqn.sweep)
+    if conf.tracking.skip_finished:  # continue this job's KILLED members (cdqn.training.sweep)
         signum = _resume_killed(cfg, uri, members, results, progress)
         members = [m for m in members if m.seed not in results]
         if signum is not None or not members:
@@ -478,7 +478,7 @@ def train_members(
 ) -> int | None:
     """Train ``members`` (their runs open) to the end, with checkpoints (every
     ``train.checkpoint_every`` episodes of the slowest member and on SIGINT/SIGTERM, see
-    :mod:`cdqn.population_checkpoint`); put each member's ``RunResult`` into ``results``
+    :mod:`cdqn.training.population_checkpoint`); put each member's ``RunResult`` into ``results``
     and close its run.  ``sequence``: number of the last checkpoint (a resumed population
     continues the count).  Returns the signal that stopped training, if any."""
     from cdqn.train import RunResult  # noqa: PLC0415

@@ -29,9 +29,9 @@ import torch
 from mlflow.tracking import MlflowClient
 
 from cdqn.agents.base import Agent
-from cdqn.signals import COLUMNS, SignalBuffer
-from cdqn.tracking import retrying
-from cdqn.trainer import TrainState
+from cdqn.training.loop import TrainState
+from cdqn.training.signals import COLUMNS, SignalBuffer
+from cdqn.training.tracking import retrying
 
 log = logging.getLogger("cdqn")
 
@@ -122,7 +122,7 @@ class CheckpointStore:
         self.store_signals = store_signals
         self.kind = kind
         """The checkpoint dataclass stored (:class:`Checkpoint`; a population member's:
-        :class:`cdqn.population_checkpoint.MemberCheckpoint`, ordered by ``sequence``)."""
+        :class:`cdqn.training.population_checkpoint.MemberCheckpoint`, ordered by ``sequence``)."""
         self.retry_s = 0.0
         """Seconds a write is retried while the store does not answer."""
         self._next_slot = 0
