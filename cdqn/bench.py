@@ -69,15 +69,10 @@ from cdqn.config import Config, register_configs  # noqa: E402
 from cdqn.control.factory import make_controller  # noqa: E402
 from cdqn.envs import env_sizes, make_env  # noqa: E402
 from cdqn.network import NetworkSpec, QNetwork  # noqa: E402
+from cdqn.training.build import build, build_population, member_config  # noqa: E402
 from cdqn.training.loop import DivergenceError, EpisodeStats, TrainState, train  # noqa: E402
-from cdqn.training.population import (  # noqa: E402
-    Member,
-    build_population,
-    finish_member,
-    member_config,
-    start_member_run,
-    train_population,
-)
+from cdqn.training.population import finish_member, start_member_run  # noqa: E402
+from cdqn.training.population_loop import Member, train_population  # noqa: E402
 from cdqn.training.signals import SignalBuffer  # noqa: E402
 from cdqn.training.tracking import Recorder  # noqa: E402
 
@@ -166,8 +161,6 @@ def measure_single(cfg: DictConfig, uri: str, steps: int, warmup: int) -> Throug
     MLflow recorder) for ``warmup + steps`` environment steps; only whole episodes after the
     warm-up are timed, and a diverged run is replaced by another seed's.  The recorder's
     batched metric writes are timed apart (:attr:`Throughput.metric_write_s`)."""
-    from cdqn.train import build  # noqa: PLC0415
-
     conf = _conf(cfg)
     total = Throughput(0, 0.0)
     done, seed = 0, conf.seed

@@ -440,7 +440,7 @@ class Study:
         """Train ``cfg``'s population; ``report(n, J_n)`` is called each ``interval``
         episodes and returns True to prune.  Returns the progress, the result and the
         episode at which it was pruned (None: not pruned)."""
-        from cdqn.training.population import run_population  # noqa: PLC0415
+        from cdqn.training.run import run_population  # noqa: PLC0415
 
         seeds = [int(cfg.seed) + i for i in range(int(cfg.train.population))]
         prog = Progress(seeds)

@@ -15,9 +15,9 @@ from mlflow.tracking import MlflowClient
 
 from cdqn.agents.base import StepRecord
 from cdqn.network import load_network
-from cdqn.train import run
 from cdqn.training.callbacks import JOB_FILE, format_summary, summarize
 from cdqn.training.loop import DivergenceError, train
+from cdqn.training.run import run
 from cdqn.training.signals import SignalBuffer
 from tests.conftest import TINY, compose_config
 from tests.helpers import run_cli

@@ -17,8 +17,8 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from cdqn.config import ConfigError
-from cdqn.train import run
 from cdqn.training.checkpoint import CheckpointStore
+from cdqn.training.run import run
 from cdqn.training.tracking import TrackingError
 from tests.conftest import compose_config
 from tests.helpers import run_cli, signals_after_episode

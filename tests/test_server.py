@@ -19,7 +19,7 @@ from mlflow.tracking import MlflowClient
 
 from cdqn.config import EvaluateConfig, TrackingConfig
 from cdqn.evaluate import evaluate
-from cdqn.train import run
+from cdqn.training.run import run
 from cdqn.training.tracking import TrackingError, check_tracking
 from tests.conftest import TINY, compose_config
 from tests.helpers import (

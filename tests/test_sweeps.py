@@ -20,8 +20,7 @@ from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
 
 from cdqn.config import validate
-from cdqn.train import run
-from cdqn.training.population import run_population
+from cdqn.training.run import run, run_population
 from cdqn.training.sweep import PrepareStore, config_hash, ensure_store
 from tests.conftest import CONF_DIR, compose_config
 

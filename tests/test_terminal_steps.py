@@ -8,7 +8,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from cdqn.envs import make_env
-from cdqn.train import build
+from cdqn.training.build import build
 from cdqn.training.loop import TrainState, train
 from cdqn.training.signals import SignalBuffer
 from tests.conftest import compose_config

@@ -15,7 +15,7 @@ import torch
 from mlflow.tracking import MlflowClient
 
 from cdqn.network import load_network
-from cdqn.train import run
+from cdqn.training.run import run
 from cdqn.training.signals import COLUMNS, FFT_COLUMNS
 from tests.conftest import TINY, compose_config
 
