@@ -35,11 +35,14 @@ resume=<run_id>`` on any member continues every unfinished member of its populat
 from __future__ import annotations
 
 import logging
+import math
+import shutil
 import tempfile
 import time
 import uuid
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from mlflow.tracking import MlflowClient
@@ -51,10 +54,12 @@ from cdqn.control.setup import ControllerSetup
 from cdqn.network import QNetwork, save_network
 from cdqn.training.build import build_population, member_config, member_seeds
 from cdqn.training.checkpoint import ROOT as CHECKPOINT_ROOT
-from cdqn.training.checkpoint import CheckpointStore
+from cdqn.training.checkpoint import CheckpointStore, load_local, local_path, save_local
 from cdqn.training.interrupt import GracefulStop
 from cdqn.training.population_checkpoint import (
+    CLOSING_FILE,
     MemberCheckpoint,
+    MemberClosing,
     capture_member,
     common_sequence,
     restore_member,
@@ -62,7 +67,7 @@ from cdqn.training.population_checkpoint import (
 )
 from cdqn.training.population_loop import Member, train_population
 from cdqn.training.population_step import ControlledPopulation
-from cdqn.training.result import PopulationResult, RunResult
+from cdqn.training.result import OUTAGE, PopulationResult, RunResult
 from cdqn.training.sweep import (
     config_hash,
     ensure_store,
@@ -159,11 +164,19 @@ def train_members(
 ) -> int | None:
     """Train ``members`` (their runs open) to the end, with checkpoints (every
     ``train.checkpoint_every`` episodes of the slowest member and on SIGINT/SIGTERM, see
-    :mod:`cdqn.training.population_checkpoint`); put each member's ``RunResult`` into ``results``
-    and close its run.  ``sequence``: number of the last checkpoint (a resumed population
-    continues the count).  Returns the signal that stopped training, if any."""
+    :mod:`cdqn.training.population_checkpoint`); put each member's ``RunResult`` into
+    ``results`` and close its run.  ``sequence``: number of the last checkpoint (a resumed
+    population continues the count).  Returns the signal that stopped training, if any.
+
+    A tracking store that does not answer for ``tracking.retry_s`` stops the population as
+    a signal does, at the end of the population step: every member still training is
+    checkpointed into ``tracking.local_checkpoints`` (:func:`_write_local`), a member that
+    ended in that step keeps what closing its run writes there (:func:`close_locally`), all
+    runs stay RUNNING in the store, and each member's result has status ``OUTAGE``;
+    :func:`resume_population` continues from those files once the store answers again."""
     envs = list(venv.envs)
     episodes = conf.train.episodes
+    folder = conf.tracking.local_checkpoints
     stores = stores or {
         m.seed: CheckpointStore(
             m.recorder.client, m.recorder.run_id, conf.train.signals, kind=MemberCheckpoint
@@ -172,24 +185,44 @@ def train_members(
         if m.recorder is not None
     }
     counter = [sequence]
+    outage: list[TrackingOutage] = []
+    """The outage that stopped the population (at most one)."""
     for m in members:  # writes retried while the store does not answer (tracking.retry_s)
         if m.recorder is not None:
             m.recorder.retry_s = stores[m.seed].retry_s = conf.tracking.retry_s
             if m.recorder.uri.startswith(("http://", "https://")):
                 fail_fast_http(conf.tracking.timeout)
 
+    def went_away(err: TrackingOutage) -> None:
+        """No more writes to the store: metrics are only queued from now on."""
+        if not outage:
+            outage.append(err)
+        for m in members:
+            if m.recorder is not None:
+                m.recorder.flush_seconds = math.inf
+
     def on_checkpoint(
         items: list[tuple[int, Member]], obs: np.ndarray, t: np.ndarray, ret: np.ndarray
     ) -> None:
         counter[0] += 1
         ids = [m.recorder.run_id for _, m in items if m.recorder is not None]
-        for j, m in items:
-            assert m.recorder is not None
-            m.recorder.flush()
-            ckpt = capture_member(counter[0], ids, m, agent, venv, j, obs, t, ret,
-                                  m.signals.n if conf.train.signals else 0)  # fmt: skip
-            stores[m.seed].save(ckpt, m.signals)
-            m.checkpointed = m.episode
+        ckpts = [
+            capture_member(counter[0], ids, m, agent, venv, j, obs, t, ret,
+                           m.signals.n if conf.train.signals else 0)
+            for j, m in items
+        ]  # fmt: skip
+        if not outage:
+            try:
+                for (_, m), ckpt in zip(items, ckpts, strict=True):
+                    assert m.recorder is not None
+                    m.recorder.flush()
+                    stores[m.seed].save(ckpt, m.signals)
+                    m.checkpointed = m.episode
+            except TrackingOutage as err:
+                went_away(err)
+        if outage:  # every member of this checkpoint into its local file, one sequence
+            for (_, m), ckpt in zip(items, ckpts, strict=True):
+                _write_local(folder, m, ckpt)
 
     if not venv.checkpointable:
         log.warning(
@@ -201,7 +234,10 @@ def train_members(
     def on_episode(m: Member, stats: object) -> None:
         assert m.recorder is not None
         if stats.episode not in m.logged:  # type: ignore[attr-defined]
-            m.recorder.log_episode(stats)  # type: ignore[arg-type]
+            try:
+                m.recorder.log_episode(stats)  # type: ignore[arg-type]
+            except TrackingOutage as err:  # the episode's metrics stay pending
+                went_away(err)
         if observe is not None:
             observe(m)
 
@@ -220,18 +256,31 @@ def train_members(
         return f"{during}; {where}, continue the population with resume={m.recorder.run_id}"
 
     def on_member_end(m: Member, pop: ControlledPopulation, j: int) -> None:
-        if m.status == "KILLED":
+        assert m.recorder is not None
+        net = pop.network(j)
+        if m.status == "KILLED" and not outage:
             m.reason = killed_reason(
                 m, f"{stop.name or 'stopped'} during episode {m.episode} of {episodes}"
             )
-        finish_member(m, pop.network(j), conf)
-        assert m.recorder is not None
+        if not outage:
+            try:
+                finish_member(m, net, conf)
+            except TrackingOutage as err:
+                went_away(err)
+        status = m.status
+        if outage:
+            status = OUTAGE
+            if m.status != "KILLED":  # it ended in the step where the store went away
+                close_locally(m, net, conf, folder)
         seconds = time.perf_counter() - t0
         results[m.seed] = RunResult(
-            m.recorder.run_id, m.status, m.score, m.reason, returns=list(m.returns),
+            m.recorder.run_id, status, m.score, m.reason, returns=list(m.returns),
             steps=m.signals.n, seconds=seconds, rate=m.signals.n / seconds,
             epsilon=float(pop.epsilon[j]), solve_threshold=conf.env.solve_threshold,
         )  # fmt: skip
+
+    def stopping() -> bool:
+        return bool(outage) or stop.requested() or (should_stop is not None and should_stop())
 
     with stop:
         try:
@@ -245,22 +294,11 @@ def train_members(
                 on_episode=on_episode,
                 on_member_end=on_member_end,
                 progress=progress and conf.train.progress,
-                should_stop=stop.requested
-                if should_stop is None
-                else lambda: stop.requested() or should_stop(),
+                should_stop=stopping,
                 on_checkpoint=on_checkpoint if venv.checkpointable else None,
                 checkpoint_every=conf.train.checkpoint_every,
                 replay=conf.weights.replay if conf.controller.name != "ddqn" else None,
             )
-        except TrackingOutage as err:  # runs cannot be closed; the store has the checkpoints
-            open_ids = [m.recorder.run_id for m in members
-                        if m.seed not in results and m.recorder is not None]  # fmt: skip
-            log.error(
-                "%s. The members %s stay RUNNING in the store; when the server answers again, "
-                "resume=<any of them> (or the restarted sweep) continues them from their last "
-                "checkpoint", err, ", ".join(open_ids),
-            )  # fmt: skip
-            raise
         except BaseException as err:  # close the members' runs that are still open
             stop.closing()
             for m in members:
@@ -274,7 +312,40 @@ def train_members(
         finally:
             for env in envs:
                 env.close()
+    if outage:
+        message = _outage_message(outage[0], members, conf, venv.checkpointable)
+        log.error("%s", message)
+        for m in members:
+            results[m.seed].reason = message
     return stop.signum
+
+
+def _write_local(folder: str, m: Member, ckpt: MemberCheckpoint) -> None:
+    """Member ``m``'s checkpoint and its metrics not yet written, in its local file."""
+    assert m.recorder is not None
+    save_local(folder, m.recorder.run_id, ckpt, m.signals, m.recorder.pending)
+    m.checkpointed = m.episode
+
+
+def _outage_message(
+    err: TrackingOutage, members: list[Member], conf: Config, checkpointable: bool
+) -> str:
+    """What a population stopped by an outage says: the server, the local files, the
+    command that continues it."""
+    ids = [m.recorder.run_id for m in members if m.recorder is not None]
+    folder = Path(conf.tracking.local_checkpoints).resolve()
+    episodes = ", ".join(f"{m.seed}: {m.episode}" for m in members)
+    where = (
+        f"checkpoints of the members (episodes completed by seed: {episodes}) written locally "
+        f"to {folder}/<run id>/ for the runs {', '.join(ids)}"
+        if checkpointable
+        else f"no local checkpoint ({conf.env.id} members cannot be captured mid-episode)"
+    )
+    return (
+        f"{err}. The population stopped: {where}; its runs stay RUNNING in the store. When "
+        f"the server answers again: python -m cdqn.train resume={ids[0]} "
+        f"tracking.uri={err.uri} tracking.local_checkpoints={folder}"
+    )
 
 
 def _resume_killed(
@@ -301,15 +372,32 @@ def _resume_killed(
     return None
 
 
-def resume_population(uri: str, tracking: object, runs: list, progress: bool) -> PopulationResult:
+def resume_population(uri: str, tracking: Any, runs: list, progress: bool) -> PopulationResult:
     """Continue the members ``runs`` (MLflow runs of one population) from their newest
     common checkpoint, each in its own run, to the planned episode count.
 
-    Without a common checkpoint the members train again from episode 0 in their runs
-    (episodes whose metrics are stored are not logged twice); as every member's numbers
-    depend on its seed alone, the result is the same either way.
+    The checkpoint is the newest the members share: in their runs, or in
+    ``tracking.local_checkpoints`` when the store went away during the last attempt (then
+    the metrics the store did not take are written first, and a member that ended while
+    the store was away is closed from its local record without training).  Without a
+    common checkpoint the members train again from episode 0 in their runs (episodes whose
+    metrics are stored are not logged twice); as every member's numbers depend on its seed
+    alone, the result is the same either way.
     """
     client = MlflowClient(uri)
+    folder = tracking.local_checkpoints
+    results: dict = {}
+    open_runs = []
+    for r in runs:
+        closed = close_from_local(uri, client, r, tracking)
+        if closed is None:
+            open_runs.append(r)
+        else:
+            results[int(r.data.tags.get("seed", "0"))] = closed
+    runs = open_runs
+    if not runs:
+        _forget_local(folder, [], results)
+        return PopulationResult([results[s] for s in sorted(results)])
     cfgs = [stored_config(client, r.info.run_id, tracking) for r in runs]
     confs: list[Config] = [OmegaConf.to_object(c) for c in cfgs]  # type: ignore[misc]
     conf = confs[0]
@@ -334,11 +422,28 @@ def resume_population(uri: str, tracking: object, runs: list, progress: bool) ->
                     break
                 chosen[m.seed] = ckpt
         if not chosen:
-            log.warning("population has no common usable checkpoint: training it from episode 0")
             stores = {
                 m.seed: CheckpointStore(client, r.info.run_id, conf.train.signals, MemberCheckpoint)
                 for m, r in zip(members, runs, strict=True)
             }
+        pending: dict[int, list] = {}
+        local = {
+            m.seed: load_local(folder, r.info.run_id, MemberCheckpoint)
+            for m, r in zip(members, runs, strict=True)
+        }
+        seqs = {item[0].sequence for item in local.values() if item is not None}
+        if venv.checkpointable and None not in local.values() and len(seqs) == 1:
+            if (newest := seqs.pop()) >= (common or 0):
+                log.info("continuing the population from its local checkpoints in %s",
+                         Path(folder).resolve())  # fmt: skip
+                chosen = {seed: item[0] for seed, item in local.items()}  # type: ignore[index]
+                pending = {seed: item[1] for seed, item in local.items()}  # type: ignore[index]
+                sequence = max(sequence, newest)
+        elif any(item is not None for item in local.values()):
+            log.warning("local checkpoints in %s do not cover the whole population; ignored",
+                        Path(folder).resolve())  # fmt: skip
+        if not chosen:
+            log.warning("population has no common usable checkpoint: training it from episode 0")
         for j, (m, r) in enumerate(zip(members, runs, strict=True)):
             if chosen:
                 restore_member(chosen[m.seed], m, agent, venv, j)
@@ -357,6 +462,7 @@ def resume_population(uri: str, tracking: object, runs: list, progress: bool) ->
                 client.delete_tag(r.info.run_id, "failure_reason")
             m.recorder.set_tags(tags)
             m.logged = m.recorder.logged_episodes()
+            m.recorder.add_pending(pending.get(m.seed, []))  # what the store did not take
             log.info(
                 "resuming MLflow run %s (seed %d) at episode %d of %d",
                 r.info.run_id, m.seed, m.episode, conf.train.episodes,
@@ -365,9 +471,61 @@ def resume_population(uri: str, tracking: object, runs: list, progress: bool) ->
         for env in venv.envs:
             env.close()
         raise
-    results: dict = {}
     signum = train_members(conf, agent, venv, members, results, progress, sequence, stores)
+    _forget_local(folder, [r.info.run_id for r in runs], results)
     return PopulationResult([results[s] for s in sorted(results)], signum)
+
+
+def _forget_local(folder: str, run_ids: list[str], results: dict) -> None:
+    """Remove the local files of ``run_ids`` once nothing stopped for an outage again."""
+    if any(r.status == OUTAGE for r in results.values()):
+        return
+    for run_id in [*run_ids, *(r.run_id for r in results.values())]:
+        shutil.rmtree(local_path(folder, run_id).parent, ignore_errors=True)
+
+
+def close_locally(m: Member, net: QNetwork | None, conf: Config, folder: str) -> Path:
+    """Keep what closing member ``m``'s run writes (status, metrics not yet written, signal
+    rows, model) in ``folder``, for a member that ended while the store was away."""
+    assert m.recorder is not None
+    rows = m.signals.n if conf.train.signals else 0
+    closing = MemberClosing(m.status, m.reason, [float(r) for r in m.returns], rows)
+    path = save_local(folder, m.recorder.run_id, closing, m.signals, m.recorder.pending,
+                      CLOSING_FILE)  # fmt: skip
+    if conf.tracking.log_model and net is not None:
+        save_network(net, path.parent / "model")
+    return path
+
+
+def close_from_local(uri: str, client: MlflowClient, run: Any, tracking: Any) -> RunResult | None:
+    """Close ``run`` from its local record (:func:`close_locally`), as the population would
+    have closed it; None when it has none."""
+    folder = tracking.local_checkpoints
+    run_id = run.info.run_id
+    found = load_local(folder, run_id, MemberClosing, CLOSING_FILE)
+    if found is None:
+        return None
+    closing, pending = found
+    conf: Config = OmegaConf.to_object(stored_config(client, run_id, tracking))  # type: ignore[assignment]
+    m = Member(conf.seed, OmegaConf.create(), status=closing.status, reason=closing.reason)
+    m.returns = list(closing.returns)
+    if closing.signals is not None:
+        m.signals.load(closing.signals)
+    m.recorder = Recorder.attach(uri, run_id)
+    m.recorder.set_tags(
+        {
+            "resumed_from_episode": str(len(m.returns)),
+            "resume_count": str(int(run.data.tags.get("resume_count", "0")) + 1),
+            **process_tags(),
+        }
+    )
+    m.recorder.add_pending(pending)
+    log.info("closing run %s (seed %d, %s while the store was away) from %s",
+             run_id, m.seed, m.status, local_path(folder, run_id).parent)  # fmt: skip
+    model = local_path(folder, run_id).parent / "model"
+    finish_member(m, None, conf, model if model.is_dir() else None)
+    return RunResult(run_id, m.status, m.score, m.reason, returns=list(m.returns),
+                     steps=m.signals.n, solve_threshold=conf.env.solve_threshold)  # fmt: skip
 
 
 def start_member_run(
@@ -412,8 +570,10 @@ def start_member_run(
     return rec
 
 
-def finish_member(m: Member, net: QNetwork | None, conf: Config) -> None:
-    """Signals, model and status of member ``m``'s run, as a single run writes them."""
+def finish_member(m: Member, net: QNetwork | None, conf: Config, model: Path | None = None) -> None:
+    """Signals, model (of ``net``, or the saved one in folder ``model``) and status of
+    member ``m``'s run, as a single run writes them.  A store that went away
+    (:class:`TrackingOutage`) leaves the run open."""
     rec = m.recorder
     assert rec is not None
     try:
@@ -423,10 +583,22 @@ def finish_member(m: Member, net: QNetwork | None, conf: Config) -> None:
             with tempfile.TemporaryDirectory() as tmp:
                 save_network(net, Path(tmp))
                 rec.log_dir(Path(tmp), "model")
+        elif conf.tracking.log_model and model is not None:
+            rec.log_dir(model, "model")
         if m.status == "FINISHED" and not conf.train.keep_checkpoints:
             rec.delete_artifacts(CHECKPOINT_ROOT)  # nothing left to resume
-    finally:
-        status = m.status if m.status != "RUNNING" else "KILLED"
-        rec.finish(status, m.reason, m.score)
-        if status != "FINISHED":
-            log.warning("run %s %s: %s", rec.run_id, status, m.reason)
+    except TrackingOutage:
+        raise
+    except BaseException:
+        _close(m)
+        raise
+    _close(m)
+
+
+def _close(m: Member) -> None:
+    rec = m.recorder
+    assert rec is not None
+    status = m.status if m.status != "RUNNING" else "KILLED"
+    rec.finish(status, m.reason, m.score)
+    if status != "FINISHED":
+        log.warning("run %s %s: %s", rec.run_id, status, m.reason)

@@ -77,6 +77,24 @@ class MemberCheckpoint:
     """The signal rows, filled in by :meth:`cdqn.training.checkpoint.CheckpointStore.complete`."""
 
 
+CLOSING_FILE = "closing.pt"
+"""Local file of a member that ended while the tracking store was away."""
+
+
+@dataclass
+class MemberClosing:
+    """What closing the run of a member that ended (FINISHED, or FAILED by divergence) while
+    the tracking store was away writes, kept in ``tracking.local_checkpoints`` until the
+    store answers again (with the metrics not yet written, and the model beside it)."""
+
+    status: str
+    reason: str | None
+    returns: list[float]
+    signal_rows: int
+    signals: np.ndarray | None = None
+    """The signal rows, filled in when read back."""
+
+
 def capture_member(
     sequence: int,
     population: list[str],
