@@ -1,6 +1,6 @@
 """Load cdqn runs from any MLflow tracking store into pandas.
 
-A cdqn run (written by :mod:`cdqn.tracking`) carries
+A cdqn run (written by :mod:`cdqn.training.tracking`) carries
 
 * tags ``env``, ``env_id``, ``controller``, ``seed``, ``git_commit``, ``design_source``
   (and ``failure_reason`` when it failed);

@@ -7,7 +7,7 @@ paper sweep's wall time on this machine.
 
 For each controller it measures environment steps per second of the real training code
 path with logging on: the agent's step (NTK Θ1 and Θ2, controller, SGD step or Double DQN's
-minibatch step), :func:`cdqn.trainer.train` with its per-step :class:`SignalBuffer`
+minibatch step), :func:`cdqn.training.loop.train` with its per-step :class:`SignalBuffer`
 appends, divergence checks and episode statistics, and the MLflow :class:`Recorder`
 receiving every episode's metrics (a store in a temporary folder).  In the same process,
 interleaved with those measurements, it measures the **floor**: a bare online Q-learning
@@ -20,7 +20,7 @@ that other load on the machine affects all of them alike, in CPU seconds of this
 metrics to the store cost the same per episode in every mode; they are timed apart (wall
 clock), printed below the table and included in the estimate.
 
-The population section trains ``K`` seeds as one batch (:mod:`cdqn.population`) for
+The population section trains ``K`` seeds as one batch (:mod:`cdqn.training.population`) for
 ``--steps`` population steps (``K × steps`` member-steps) and reports member-steps per
 second against the single run's steps per second of the same controller (the throughput of
 ``K`` sequential runs); its ``speedup`` is the ratio.
@@ -69,17 +69,12 @@ from cdqn.config import Config, register_configs  # noqa: E402
 from cdqn.control.factory import make_controller  # noqa: E402
 from cdqn.envs import env_sizes, make_env  # noqa: E402
 from cdqn.network import NetworkSpec, QNetwork  # noqa: E402
-from cdqn.population import (  # noqa: E402
-    Member,
-    build_population,
-    finish_member,
-    member_config,
-    start_member_run,
-    train_population,
-)
-from cdqn.signals import SignalBuffer  # noqa: E402
-from cdqn.tracking import Recorder  # noqa: E402
-from cdqn.trainer import DivergenceError, EpisodeStats, TrainState, train  # noqa: E402
+from cdqn.training.build import build, build_population, member_config  # noqa: E402
+from cdqn.training.loop import DivergenceError, EpisodeStats, TrainState, train  # noqa: E402
+from cdqn.training.population import finish_member, start_member_run  # noqa: E402
+from cdqn.training.population_loop import Member, train_population  # noqa: E402
+from cdqn.training.signals import SignalBuffer  # noqa: E402
+from cdqn.training.tracking import Recorder  # noqa: E402
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 CONTROLLERS = ("none", "h2", "hinf", "hinf_f", "ddqn")
@@ -166,8 +161,6 @@ def measure_single(cfg: DictConfig, uri: str, steps: int, warmup: int) -> Throug
     MLflow recorder) for ``warmup + steps`` environment steps; only whole episodes after the
     warm-up are timed, and a diverged run is replaced by another seed's.  The recorder's
     batched metric writes are timed apart (:attr:`Throughput.metric_write_s`)."""
-    from cdqn.train import build  # noqa: PLC0415
-
     conf = _conf(cfg)
     total = Throughput(0, 0.0)
     done, seed = 0, conf.seed

@@ -281,7 +281,7 @@ class TrainConfig:
     """Keep the resume checkpoints of a run that FINISHED (default: deleted at the end)."""
     population: int = 1
     """Seeds trained together in one process as one batch: seed, seed+1, …, seed+K−1, each
-    its own MLflow run (cdqn.population)."""
+    its own MLflow run (cdqn.training.population)."""
 
 
 @dataclass
@@ -296,7 +296,7 @@ class TrackingConfig:
     """Seconds a tracking server gets to answer the start-up check."""
     skip_finished: bool = False
     """Skip a run whose configuration and seed already have a FINISHED run in the store,
-    continue one that was KILLED from its checkpoint (restarted sweeps; cdqn.sweep)."""
+    continue one that was KILLED from its checkpoint (restarted sweeps; cdqn.training.sweep)."""
     retry_s: float = 300.0
     """Seconds a metric, tag or artifact write is retried (with backoff) while the store
     does not answer; past them the run checkpoints locally and stops (resume later)."""

@@ -45,7 +45,7 @@ from cdqn.config import (
 )
 from cdqn.envs import make_env
 from cdqn.network import FastTwoLayer, QNetwork, load_network
-from cdqn.tracking import CONFIG_ARTIFACT, TrackingError, check_tracking
+from cdqn.training.tracking import CONFIG_ARTIFACT, TrackingError, check_tracking
 
 log = logging.getLogger("cdqn")
 register_configs()

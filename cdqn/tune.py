@@ -342,7 +342,7 @@ class Tracker:
     def __init__(self, uri: str, experiment: str) -> None:
         from mlflow.tracking import MlflowClient  # noqa: PLC0415
 
-        from cdqn.sweep import ensure_store  # noqa: PLC0415
+        from cdqn.training.sweep import ensure_store  # noqa: PLC0415
 
         ensure_store(uri, experiment)
         self.client = MlflowClient(uri)
@@ -357,7 +357,7 @@ class Tracker:
 
     def parent(self, study: Any, conf: TuneConfig, cfg: DictConfig) -> str:
         """The study's parent run: created at the first start, reopened on a restart."""
-        from cdqn.tracking import flatten, git_commit  # noqa: PLC0415
+        from cdqn.training.tracking import flatten, git_commit  # noqa: PLC0415
 
         run_id = study.user_attrs.get("mlflow_parent")
         if run_id is not None:
@@ -502,7 +502,7 @@ class Study:
         """Train ``cfg``'s population; ``report(n, J_n)`` is called each ``interval``
         episodes and returns True to prune.  Returns the progress, the result and the
         episode at which it was pruned (None: not pruned)."""
-        from cdqn.population import run_population  # noqa: PLC0415
+        from cdqn.training.run import run_population  # noqa: PLC0415
 
         seeds = [int(cfg.seed) + i for i in range(int(cfg.train.population))]
         prog = Progress(seeds)

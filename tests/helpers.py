@@ -7,16 +7,19 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 import urllib.request
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
 
+import pandas as pd
 import pytest
+from mlflow.tracking import MlflowClient
 
-from cdqn.tracking import Recorder
-from cdqn.trainer import EpisodeStats
+from cdqn.training.loop import EpisodeStats
+from cdqn.training.tracking import Recorder
 
 
 def run_cli(
@@ -33,6 +36,81 @@ def run_cli(
         text=True,
         timeout=timeout,
     )
+
+
+def start_cli(
+    module: str, args: list[str], cwd: Path, env: dict[str, str] | None = None
+) -> subprocess.Popen[str]:
+    """``python -m <module> <args>`` in ``cwd``, running; stdout and stderr in one text pipe,
+    unbuffered (read it with :func:`read_until`)."""
+    return subprocess.Popen(
+        [sys.executable, "-m", module, *args],
+        cwd=cwd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env={**os.environ, **(env or {}), "PYTHONUNBUFFERED": "1"},
+    )
+
+
+def read_until(
+    proc: subprocess.Popen[str], text: str, seen: list[str], timeout: float = 240.0
+) -> None:
+    """Read ``proc``'s output (kept in ``seen``) up to the first line containing ``text``."""
+    deadline = time.monotonic() + timeout
+    assert proc.stdout is not None
+    for line in proc.stdout:
+        seen.append(line)
+        if text in line:
+            return
+        assert time.monotonic() < deadline, "".join(seen)[-3000:]
+    raise AssertionError(f"{text!r} never printed:\n{''.join(seen)[-3000:]}")
+
+
+def finish(proc: subprocess.Popen[str], seen: list[str], timeout: float = 120.0) -> str:
+    """Wait for ``proc`` to end (killed if it does not) and return all it printed."""
+    try:
+        rest, _ = proc.communicate(timeout=timeout)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+    return "".join(seen) + (rest or "")
+
+
+def runs_of(uri: str) -> list:
+    """Every run in the store at ``uri``."""
+    client = MlflowClient(uri)
+    return client.search_runs([e.experiment_id for e in client.search_experiments()])
+
+
+def episode_returns(client: MlflowClient, run_id: str) -> list[float]:
+    """The run's ``episode_return`` by episode; each episode logged once."""
+    history = client.get_metric_history(run_id, "episode_return")
+    assert len({m.step for m in history}) == len(history), "an episode was logged twice"
+    return [m.value for m in sorted(history, key=lambda m: m.step)]
+
+
+def signal_table(client: MlflowClient, run_id: str) -> pd.DataFrame:
+    """The run's ``signals/steps.parquet``."""
+    with tempfile.TemporaryDirectory() as tmp:
+        return pd.read_parquet(client.download_artifacts(run_id, "signals/steps.parquet", tmp))
+
+
+def member_runs(client: MlflowClient, run_ids: list[str]) -> dict[str, str]:
+    """seed -> run id of a population's member runs."""
+    return {client.get_run(r).data.tags["seed"]: r for r in run_ids}
+
+
+def assert_same_run(
+    client: MlflowClient, run_id: str, reference: str, other: MlflowClient | None = None
+) -> None:
+    """``run_id`` FINISHED with the returns and signal rows of ``reference`` (in the store of
+    ``other``, default the same)."""
+    other = other or client
+    assert client.get_run(run_id).info.status == "FINISHED"
+    assert episode_returns(client, run_id) == episode_returns(other, reference)
+    pd.testing.assert_frame_equal(signal_table(client, run_id), signal_table(other, reference))
 
 
 def free_port() -> int:
@@ -70,6 +148,7 @@ class MlflowServer:
     same store (a server that goes away during a run and comes back)."""
 
     def __init__(self, root: Path, port: int | None = None) -> None:
+        root.mkdir(parents=True, exist_ok=True)
         self.root = root
         self.port = port or free_port()
         self.uri = f"http://127.0.0.1:{self.port}"
@@ -114,6 +193,13 @@ class MlflowServer:
                 self.stop()
                 raise RuntimeError(f"mlflow server did not come up: {log}")
             time.sleep(0.5)
+
+    def __enter__(self) -> MlflowServer:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
 
     def stop(self) -> None:
         """Stop the server's whole process group (the CLI, uvicorn and its workers)."""

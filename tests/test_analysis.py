@@ -39,7 +39,7 @@ N_FINISHED = len(RUNS)
 
 @pytest.fixture(scope="module")
 def store_uri(tmp_path_factory: pytest.TempPathFactory) -> str:
-    from cdqn.train import run
+    from cdqn.training.run import run
 
     root = tmp_path_factory.mktemp("store")
     uri = f"sqlite:///{root / 'mlflow.db'}"

@@ -145,7 +145,7 @@ def test_scheduled_h2_rho_cap_lowers_the_discount_only_where_the_ratio_is_large(
 def test_every_run_records_what_its_design_keeps(tracking_uri: str) -> None:
     from mlflow.tracking import MlflowClient
 
-    from cdqn.train import run
+    from cdqn.training.run import run
 
     cfg = compose_config(["controller=hinf_f", *FAST, *TARGET, "network.width=16",
                           "train.episodes=1", "train.progress=false", "tracking.log_model=false",

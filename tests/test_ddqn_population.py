@@ -11,13 +11,14 @@ from mlflow.tracking import MlflowClient
 from omegaconf import OmegaConf
 
 from cdqn.control.factory import make_controller
-from cdqn.ddqn_population import DDQNPopulation
 from cdqn.envs import make_env
 from cdqn.network import FastTwoLayer, NetworkSpec, QNetwork, double_dqn_step
-from cdqn.population import Member, build_population, run_population, train_population
-from cdqn.signals import SignalBuffer
-from cdqn.train import build
-from cdqn.trainer import TrainState, train
+from cdqn.training.build import build, build_population
+from cdqn.training.ddqn_population import DDQNPopulation
+from cdqn.training.loop import TrainState, train
+from cdqn.training.population_loop import Member, train_population
+from cdqn.training.run import run_population
+from cdqn.training.signals import SignalBuffer
 from tests.conftest import compose_config
 from tests.test_population import _artifacts, _frame, _metrics
 
@@ -194,7 +195,7 @@ def _assert_same_state(a: dict, b: dict) -> None:
 
 
 def test_ddqn_population_member_is_recorded_as_its_single_run(tracking_uri: str) -> None:
-    from cdqn.train import run  # noqa: PLC0415
+    from cdqn.training.run import run  # noqa: PLC0415
 
     base = [*BASE, "train.episodes=4", f"tracking.uri={tracking_uri}"]
     singles = [run(compose_config([*base, f"seed={s}"]), progress=False) for s in (3, 4)]

@@ -14,11 +14,11 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from cdqn.agents.base import StepRecord
-from cdqn.callbacks import JOB_FILE, format_summary, summarize
 from cdqn.network import load_network
-from cdqn.signals import SignalBuffer
-from cdqn.train import run
-from cdqn.trainer import DivergenceError, train
+from cdqn.training.callbacks import JOB_FILE, format_summary, summarize
+from cdqn.training.loop import DivergenceError, train
+from cdqn.training.run import run
+from cdqn.training.signals import SignalBuffer
 from tests.conftest import TINY, compose_config
 from tests.helpers import run_cli
 

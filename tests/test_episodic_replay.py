@@ -9,7 +9,7 @@ from mlflow.tracking import MlflowClient
 
 from cdqn.agents.episodic_replay import EpisodeTail, PopulationTail, qualifies
 from cdqn.config import ReplayConfig
-from cdqn.train import run
+from cdqn.training.run import run
 from tests.conftest import compose_config
 
 

@@ -16,8 +16,8 @@ from mlflow.tracking import MlflowClient
 from cdqn.config import ConfigError, EvaluateConfig, TrackingConfig
 from cdqn.evaluate import evaluate
 from cdqn.network import load_network
-from cdqn.tracking import TrackingError
-from cdqn.train import run
+from cdqn.training.run import run
+from cdqn.training.tracking import TrackingError
 from tests.conftest import TINY, compose_config
 from tests.helpers import run_cli
 

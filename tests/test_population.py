@@ -12,17 +12,12 @@ from cdqn.agents.base import EpsilonGreedy
 from cdqn.config import EnvConfig, TrainConfig
 from cdqn.control.factory import make_controller
 from cdqn.envs import make_env
-from cdqn.population import (
-    Member,
-    build_population,
-    member_seeds,
-    run_population,
-    train_population,
-)
-from cdqn.population_step import ExplorationPlan
-from cdqn.signals import SignalBuffer
-from cdqn.train import build, run
-from cdqn.trainer import DivergenceError, TrainState, train
+from cdqn.training.build import build, build_population, member_seeds
+from cdqn.training.loop import DivergenceError, TrainState, train
+from cdqn.training.population_loop import Member, train_population
+from cdqn.training.population_step import ExplorationPlan
+from cdqn.training.run import run, run_population
+from cdqn.training.signals import SignalBuffer
 from cdqn.vector_env import (
     ClassicControlTwin,
     GymLoop,
@@ -101,7 +96,7 @@ BASE = [
 
 
 def _single(overrides: list[str]) -> tuple[str, str | None, list[float], np.ndarray]:
-    """(status, failure reason, returns, signal rows) of cdqn.train's loop for one seed."""
+    """(status, failure reason, returns, signal rows) of a single run's loop for one seed."""
     conf = OmegaConf.to_object(compose_config(overrides))
     env = make_env(conf.env)
     job = build(conf, env)

@@ -3,25 +3,30 @@
 
 from __future__ import annotations
 
-import os
 import signal
-import subprocess
-import sys
 import tempfile
-import time
 from collections.abc import Callable
 from pathlib import Path
 
-import pandas as pd
 import pytest
 from mlflow.tracking import MlflowClient
 
-from cdqn.checkpoint import CheckpointStore
 from cdqn.config import ConfigError
-from cdqn.tracking import TrackingError
-from cdqn.train import run
+from cdqn.training.checkpoint import CheckpointStore
+from cdqn.training.run import run
+from cdqn.training.tracking import TrackingError
 from tests.conftest import compose_config
-from tests.helpers import run_cli, signals_after_episode
+from tests.helpers import (
+    assert_same_run,
+    episode_returns,
+    finish,
+    member_runs,
+    read_until,
+    run_cli,
+    signal_table,
+    signals_after_episode,
+    start_cli,
+)
 
 CONTROLLED = [
     "controller=hinf",
@@ -55,24 +60,6 @@ def store(tmp_path_factory: pytest.TempPathFactory) -> str:
     return f"sqlite:///{tmp_path_factory.mktemp('store') / 'mlflow.db'}"
 
 
-def _returns(client: MlflowClient, run_id: str) -> list[float]:
-    history = client.get_metric_history(run_id, "episode_return")
-    steps = [m.step for m in history]
-    assert len(steps) == len(set(steps)), "an episode was logged twice"
-    return [m.value for m in sorted(history, key=lambda m: m.step)]
-
-
-def _signals(client: MlflowClient, run_id: str) -> pd.DataFrame:
-    with tempfile.TemporaryDirectory() as tmp:
-        return pd.read_parquet(client.download_artifacts(run_id, "signals/steps.parquet", tmp))
-
-
-def _assert_same_run(client: MlflowClient, resumed: str, reference: str) -> None:
-    assert client.get_run(resumed).info.status == "FINISHED"
-    assert _returns(client, resumed) == _returns(client, reference)
-    pd.testing.assert_frame_equal(_signals(client, resumed), _signals(client, reference))
-
-
 @pytest.mark.parametrize("overrides", [CONTROLLED, DDQN], ids=["hinf", "ddqn"])
 def test_signal_checkpoint_resume_equals_uninterrupted(
     store: str, overrides: list[str], signal_at: Callable[..., None]
@@ -85,8 +72,8 @@ def test_signal_checkpoint_resume_equals_uninterrupted(
     info = client.get_run(killed.run_id)
     assert info.info.status == "KILLED"
     assert info.data.tags["failure_reason"].startswith("SIGTERM after episode 5 of 12")
-    assert len(_returns(client, killed.run_id)) == 5
-    assert len(_signals(client, killed.run_id)) > 0  # flushed at the interruption
+    assert len(episode_returns(client, killed.run_id)) == 5
+    assert len(signal_table(client, killed.run_id)) > 0  # flushed at the interruption
     ckpt = CheckpointStore(client, killed.run_id).load()
     assert ckpt is not None and ckpt.episode == 5
 
@@ -97,7 +84,7 @@ def test_signal_checkpoint_resume_equals_uninterrupted(
     assert tags["previous_failure_reason"].startswith("SIGTERM")
 
     reference = run(compose_config([*overrides, f"tracking.uri={store}"]), progress=False)
-    _assert_same_run(client, killed.run_id, reference.run_id)
+    assert_same_run(client, killed.run_id, reference.run_id)
 
 
 def test_second_signal_stops_at_once_and_resumes_from_periodic_checkpoint(
@@ -115,7 +102,7 @@ def test_second_signal_stops_at_once_and_resumes_from_periodic_checkpoint(
     )[0]
     reason = killed.data.tags["failure_reason"]
     assert "the last checkpoint is at episode 6" in reason, reason
-    assert len(_returns(client, killed.info.run_id)) == 7  # more than the checkpoint holds
+    assert len(episode_returns(client, killed.info.run_id)) == 7  # more than the checkpoint holds
 
     # slots a, b, a took episodes 2, 4, 6; spoil the newest (as a write cut short by a hard
     # kill would): resume falls back to the other slot
@@ -128,7 +115,7 @@ def test_second_signal_stops_at_once_and_resumes_from_periodic_checkpoint(
 
     run(compose_config([f"resume={killed.info.run_id}", f"tracking.uri={store}"]), False)
     reference = run(compose_config([*CONTROLLED, f"tracking.uri={store}"]), progress=False)
-    _assert_same_run(client, killed.info.run_id, reference.run_id)
+    assert_same_run(client, killed.info.run_id, reference.run_id)
 
 
 def test_resume_refuses_what_cannot_be_continued(store: str) -> None:
@@ -154,34 +141,17 @@ def test_sigterm_to_training_process_then_cli_resume(tmp_path: Path, store: str)
     resumes it from the store, and the returns equal an uninterrupted run's."""
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     args = [*CONTROLLED, "train.episodes=400", "train.checkpoint_every=25", f"tracking.uri={uri}"]
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "cdqn.train", *args],
-        cwd=tmp_path,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-    )
-    deadline, seen = time.monotonic() + 240, []
+    proc, seen = start_cli("cdqn.train", args, tmp_path), []
     try:
-        assert proc.stdout is not None
-        for line in proc.stdout:  # wait for the first periodic checkpoint, then signal
-            seen.append(line)
-            if "checkpoint at episode 25" in line:
-                proc.send_signal(signal.SIGTERM)
-                break
-            assert time.monotonic() < deadline, "".join(seen)
-        rest, _ = proc.communicate(timeout=120)
+        read_until(proc, "checkpoint at episode 25", seen)  # the first periodic checkpoint
+        proc.send_signal(signal.SIGTERM)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10)
-    output = "".join(seen) + rest
+        output = finish(proc, seen)
     assert proc.returncode == 128 + signal.SIGTERM, output
     client = MlflowClient(uri)
     (killed,) = client.search_runs(["1"])
     assert killed.info.status == "KILLED"
-    stopped_at = len(_returns(client, killed.info.run_id))
+    stopped_at = len(episode_returns(client, killed.info.run_id))
     assert 25 <= stopped_at < 400, output
 
     resumed = run_cli(
@@ -192,15 +162,10 @@ def test_sigterm_to_training_process_then_cli_resume(tmp_path: Path, store: str)
         resumed.stdout + resumed.stderr
     )
     reference = run(compose_config([*args[:-1], "train.checkpoint_every=0", f"tracking.uri={uri}"]))
-    _assert_same_run(client, killed.info.run_id, reference.run_id)
+    assert_same_run(client, killed.info.run_id, reference.run_id)
 
 
 POPULATION = [*CONTROLLED, "train.population=3", "train.episodes=300"]
-
-
-def _member_runs(client: MlflowClient, run_ids: list[str]) -> dict[str, str]:
-    """seed -> run id."""
-    return {client.get_run(r).data.tags["seed"]: r for r in run_ids}
 
 
 @pytest.mark.slow
@@ -210,29 +175,12 @@ def test_sigterm_to_population_process_then_resume_equals_uninterrupted(tmp_path
     every member's returns and signal rows equal those of an uninterrupted population."""
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     args = [*POPULATION, "train.checkpoint_every=20", f"tracking.uri={uri}"]
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "cdqn.train", *args],
-        cwd=tmp_path,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-    )
-    deadline, seen = time.monotonic() + 240, []
+    proc, seen = start_cli("cdqn.train", args, tmp_path), []
     try:
-        assert proc.stdout is not None
-        for line in proc.stdout:  # the first population checkpoint, then the signal
-            seen.append(line)
-            if "checkpoint at episode" in line:
-                proc.send_signal(signal.SIGTERM)
-                break
-            assert time.monotonic() < deadline, "".join(seen)
-        rest, _ = proc.communicate(timeout=120)
+        read_until(proc, "checkpoint at episode", seen)  # the first population checkpoint
+        proc.send_signal(signal.SIGTERM)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10)
-    output = "".join(seen) + rest
+        output = finish(proc, seen)
     assert proc.returncode == 128 + signal.SIGTERM, output
     client = MlflowClient(uri)
     killed = client.search_runs(["1"])
@@ -243,7 +191,7 @@ def test_sigterm_to_population_process_then_resume_equals_uninterrupted(tmp_path
         assert f"checkpoint written, continue the population with resume={r.info.run_id}" in (
             reason
         )
-        assert len(_returns(client, r.info.run_id)) < 300
+        assert len(episode_returns(client, r.info.run_id)) < 300
     pid = {r.data.tags["population_id"] for r in killed}
     assert len(pid) == 1
 
@@ -257,12 +205,12 @@ def test_sigterm_to_population_process_then_resume_equals_uninterrupted(tmp_path
         compose_config([*POPULATION, "train.checkpoint_every=0", f"tracking.uri={uri}"])
     )
     assert reference.status == "FINISHED"
-    ours = _member_runs(client, [r.info.run_id for r in killed])
-    theirs = _member_runs(client, reference.run_id.split(","))
+    ours = member_runs(client, [r.info.run_id for r in killed])
+    theirs = member_runs(client, reference.run_id.split(","))
     assert sorted(ours) == sorted(theirs) == ["3", "4", "5"]
     for seed, run_id in ours.items():
-        assert len(_returns(client, run_id)) == 300
-        _assert_same_run(client, run_id, theirs[seed])
+        assert len(episode_returns(client, run_id)) == 300
+        assert_same_run(client, run_id, theirs[seed])
         tags = client.get_run(run_id).data.tags
         assert tags["resume_count"] == "1" and "failure_reason" not in tags
 
@@ -303,8 +251,8 @@ def test_population_resumes_from_a_periodic_checkpoint(
     resumed = run(compose_config([f"resume={killed[0].info.run_id}", f"tracking.uri={store}"]))
     assert resumed.status == "FINISHED"
     reference = run(compose_config([*base, "train.checkpoint_every=0"]), progress=False)
-    ours = _member_runs(client, resumed.run_id.split(","))
-    theirs = _member_runs(client, reference.run_id.split(","))
+    ours = member_runs(client, resumed.run_id.split(","))
+    theirs = member_runs(client, reference.run_id.split(","))
     assert sorted(ours) == sorted(theirs) == [str(seed + i) for i in range(3)]
     for seed, run_id in ours.items():
-        _assert_same_run(client, run_id, theirs[seed])
+        assert_same_run(client, run_id, theirs[seed])

@@ -3,10 +3,7 @@ resumes; an unreachable or wrong URI is refused at start, within seconds."""
 
 from __future__ import annotations
 
-import os
 import signal
-import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -19,15 +16,21 @@ from mlflow.tracking import MlflowClient
 
 from cdqn.config import EvaluateConfig, TrackingConfig
 from cdqn.evaluate import evaluate
-from cdqn.tracking import TrackingError, check_tracking
-from cdqn.train import run
+from cdqn.training.run import run
+from cdqn.training.tracking import TrackingError, check_tracking
 from tests.conftest import TINY, compose_config
 from tests.helpers import (
     MlflowServer,
+    assert_same_run,
+    episode_returns,
+    finish,
     free_port,
+    member_runs,
     mlflow_server,
+    read_until,
     run_cli,
     signals_after_episode,
+    start_cli,
 )
 
 
@@ -188,66 +191,29 @@ OUTAGE = [
 ]
 
 
-def _training(args: list[str], cwd: Path) -> subprocess.Popen[str]:
-    return subprocess.Popen(
-        [sys.executable, "-m", "cdqn.train", *args],
-        cwd=cwd,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-    )
-
-
-def _read_until(proc: subprocess.Popen[str], text: str, seen: list[str]) -> None:
-    deadline = time.monotonic() + 240
-    assert proc.stdout is not None
-    for line in proc.stdout:
-        seen.append(line)
-        if text in line:
-            return
-        assert time.monotonic() < deadline, "".join(seen)
-    raise AssertionError(f"{text!r} never printed:\n{''.join(seen)[-3000:]}")
-
-
-def _returns(client: MlflowClient, run_id: str) -> list[float]:
-    history = client.get_metric_history(run_id, "episode_return")
-    assert len({m.step for m in history}) == len(history), "an episode was logged twice"
-    return [m.value for m in sorted(history, key=lambda m: m.step)]
-
-
 @pytest.mark.slow
 def test_a_server_that_goes_away_and_comes_back(tmp_path: Path) -> None:
     """A real server stopped during a run: for less than ``tracking.retry_s`` the run waits
     and loses nothing; for longer, it checkpoints locally, exits 75 naming the server and
     the file, and ``resume=`` (server back) continues it to the uninterrupted result."""
-    root = tmp_path / "server"
-    root.mkdir()
-    server = MlflowServer(root)
-    server.start()
-    try:
+    with MlflowServer(tmp_path / "server") as server:
         uri = server.uri
         # 1. a 5 s outage within tracking.retry_s=120: the run finishes, nothing lost
-        proc, seen = (
-            _training([*OUTAGE, f"tracking.uri={uri}", "tracking.retry_s=120"], tmp_path),
-            [],
-        )
+        args = [*OUTAGE, f"tracking.uri={uri}", "tracking.retry_s=120"]
+        proc, seen = start_cli("cdqn.train", args, tmp_path), []
         try:
-            _read_until(proc, "checkpoint at episode 50", seen)
+            read_until(proc, "checkpoint at episode 50", seen)
             server.stop()
             time.sleep(5)
             server.start()
-            rest, _ = proc.communicate(timeout=300)
         finally:
-            if proc.poll() is None:
-                proc.kill()
-        output = "".join(seen) + rest
+            output = finish(proc, seen, timeout=300)
         assert proc.returncode == 0, output[-3000:]
         assert f"tracking server {uri} not answering" in output
         client = MlflowClient(uri)
         (blinked,) = client.search_runs(["1"])
         assert blinked.info.status == "FINISHED"
-        assert len(_returns(client, blinked.info.run_id)) == 400
+        assert len(episode_returns(client, blinked.info.run_id)) == 400
 
         # 2. an outage longer than tracking.retry_s=3: local checkpoint, exit 75, resume
         local = tmp_path / "local-checkpoints"
@@ -258,18 +224,15 @@ def test_a_server_that_goes_away_and_comes_back(tmp_path: Path) -> None:
             "tracking.retry_s=3",
             f"tracking.local_checkpoints={local}",
         ]
-        proc, seen = _training(args, tmp_path), []
+        proc, seen = start_cli("cdqn.train", args, tmp_path), []
         try:
-            _read_until(proc, "checkpoint at episode 50", seen)
+            read_until(proc, "checkpoint at episode 50", seen)
             run_id = next(
                 r.info.run_id for r in client.search_runs(["1"]) if r.data.tags["seed"] == "6"
             )
             server.stop()
-            rest, _ = proc.communicate(timeout=120)
         finally:
-            if proc.poll() is None:
-                proc.kill()
-        output = "".join(seen) + rest
+            output = finish(proc, seen)
         assert proc.returncode == 75, output[-3000:]
         path = local / run_id / "state.pt"
         assert f"the tracking server {uri} did not answer" in output
@@ -288,13 +251,7 @@ def test_a_server_that_goes_away_and_comes_back(tmp_path: Path) -> None:
         reference = run(
             compose_config([*OUTAGE, "seed=6", "train.checkpoint_every=0", f"tracking.uri={uri}"])
         )
-        assert client.get_run(run_id).info.status == "FINISHED"
-        assert _returns(client, run_id) == _returns(client, reference.run_id)
-        ours = pd.read_parquet(client.download_artifacts(run_id, "signals/steps.parquet"))
-        theirs = pd.read_parquet(
-            client.download_artifacts(reference.run_id, "signals/steps.parquet")
-        )
-        pd.testing.assert_frame_equal(ours, theirs)
+        assert_same_run(client, run_id, reference.run_id)
         record = client.get_run(run_id)
         print(
             "outage run:",
@@ -302,5 +259,69 @@ def test_a_server_that_goes_away_and_comes_back(tmp_path: Path) -> None:
             sorted(record.data.tags),
             {k: len(client.get_metric_history(run_id, k)) for k in record.data.metrics},
         )
-    finally:
-        server.stop()
+
+
+POPULATION_OUTAGE = [*OUTAGE, "train.population=3", "train.checkpoint_every=10", "seed=7"]
+
+
+@pytest.mark.slow
+def test_a_population_whose_server_stays_away(tmp_path: Path) -> None:
+    """A real server stopped during a population for longer than ``tracking.retry_s``: the
+    population stops at the end of a step, writes every member's checkpoint locally, ends
+    with one message naming the server and the local checkpoints, exits 75 with its runs
+    RUNNING; ``resume=`` (server back) continues every member from the local checkpoints to
+    the returns and signal rows of an uninterrupted population."""
+    with MlflowServer(tmp_path / "server") as server:
+        uri = server.uri
+        local = tmp_path / "local-checkpoints"
+        args = [
+            *POPULATION_OUTAGE,
+            f"tracking.uri={uri}",
+            "tracking.retry_s=3",
+            f"tracking.local_checkpoints={local}",
+        ]
+        proc, seen = start_cli("cdqn.train", args, tmp_path), []
+        try:
+            read_until(proc, "checkpoint at episode", seen)  # the population's first
+            client = MlflowClient(uri)
+            ids = sorted(r.info.run_id for r in client.search_runs(["1"]))
+            first = member_runs(client, ids)["7"]  # the message names the first seed's run
+            server.stop()
+        finally:
+            output = finish(proc, seen)
+        assert proc.returncode == 75, output[-3000:]
+        assert len(ids) == 3 and "Traceback" not in output
+        (message,) = [line for line in output.splitlines() if "did not answer" in line]
+        assert f"the tracking server {uri} did not answer" in message
+        assert f"written locally to {local.resolve()}/<run id>/" in message
+        assert (
+            f"resume={first} tracking.uri={uri} "
+            f"tracking.local_checkpoints={local.resolve()}" in message
+        )
+        written = {p.parent.name for p in local.glob("*/*.pt")}
+        assert written == set(ids), (written, output[-3000:])
+
+        server.start()
+        assert {client.get_run(r).info.status for r in ids} == {"RUNNING"}
+        stored = {r: len(episode_returns(client, r)) for r in ids}
+        resumed = run_cli(
+            "cdqn.train",
+            # any member continues the whole population
+            [f"resume={ids[1]}", f"tracking.uri={uri}", f"tracking.local_checkpoints={local}"],
+            tmp_path,
+        )
+        out = resumed.stdout + resumed.stderr
+        assert resumed.returncode == 0, out[-3000:]
+        assert "from its local checkpoints" in out or "closing run" in out, out[-3000:]
+        assert not list(local.glob("*/*.pt"))
+        reference = run(
+            compose_config([*POPULATION_OUTAGE, "train.checkpoint_every=0", f"tracking.uri={uri}"])
+        )
+        ours = member_runs(client, ids)
+        theirs = member_runs(client, reference.run_id.split(","))
+        assert sorted(ours) == sorted(theirs) == ["7", "8", "9"]
+        for seed, run_id in ours.items():
+            assert len(episode_returns(client, run_id)) == 400 > stored[run_id]
+            assert_same_run(client, run_id, theirs[seed])
+            assert client.get_run(run_id).data.tags["resume_count"] == "1"
+        print("population outage:", message)

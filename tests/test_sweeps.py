@@ -10,7 +10,6 @@ import os
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -20,10 +19,10 @@ from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
 
 from cdqn.config import validate
-from cdqn.population import run_population
-from cdqn.sweep import PrepareStore, config_hash, ensure_store
-from cdqn.train import run
+from cdqn.training.run import run, run_population
+from cdqn.training.sweep import PrepareStore, config_hash, ensure_store
 from tests.conftest import CONF_DIR, compose_config
+from tests.helpers import episode_returns, runs_of, signal_table
 
 ROOT = CONF_DIR.parent
 SWEEPS = ROOT / "sweeps"
@@ -103,11 +102,6 @@ TINY = [
 ]
 
 
-def _runs(uri: str) -> list:
-    client = MlflowClient(uri)
-    return client.search_runs([e.experiment_id for e in client.search_experiments()])
-
-
 def test_a_restarted_run_skips_a_finished_one_and_retrains_a_failed_one(
     tracking_uri: str, caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -118,10 +112,10 @@ def test_a_restarted_run_skips_a_finished_one_and_retrains_a_failed_one(
     assert (again.run_id, again.status) == (first.run_id, "FINISHED")
     assert again.final_score == pytest.approx(first.final_score)
     assert "skipping cartpole/hinf_f seed 0" in caplog.text
-    assert len(_runs(tracking_uri)) == 1
+    assert len(runs_of(tracking_uri)) == 1
     MlflowClient(tracking_uri).set_terminated(first.run_id, "FAILED")
     retrained = run(cfg, progress=False)
-    assert retrained.run_id != first.run_id and len(_runs(tracking_uri)) == 2
+    assert retrained.run_id != first.run_id and len(runs_of(tracking_uri)) == 2
     other = run(compose_config([*TINY, f"tracking.uri={tracking_uri}", "seed=1"]), False)
     assert other.run_id not in (first.run_id, retrained.run_id)
 
@@ -134,12 +128,12 @@ def test_a_restarted_population_trains_only_the_missing_seeds(
     with caplog.at_level(logging.INFO, logger="cdqn"):
         result = run_population(cfg)
     assert "skipping cartpole/hinf_f seed 1" in caplog.text
-    runs = _runs(tracking_uri)
+    runs = runs_of(tracking_uri)
     assert sorted(r.data.tags["seed"] for r in runs) == ["0", "1", "2"]
     assert [r.status for r in result.members] == ["FINISHED"] * 3
-    assert len(_runs(tracking_uri)) == 3
+    assert len(runs_of(tracking_uri)) == 3
     assert run_population(cfg).summary().run_id == result.summary().run_id  # all skipped
-    assert len(_runs(tracking_uri)) == 3
+    assert len(runs_of(tracking_uri)) == 3
 
 
 @pytest.mark.slow
@@ -171,12 +165,12 @@ def test_an_interrupted_local_sweep_started_again_skips_what_finished(tmp_path: 
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, timeout=600, check=True)
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
-    first = {r.info.run_id for r in _runs(uri)}
+    first = {r.info.run_id for r in runs_of(uri)}
     assert len(first) == 4
     out = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-2000:]
     assert (out.stdout + out.stderr).count("skipping") == 4
-    assert {r.info.run_id for r in _runs(uri)} == first
+    assert {r.info.run_id for r in runs_of(uri)} == first
 
 
 RESTART = [
@@ -191,7 +185,7 @@ RESTART = [
 
 
 def _by_member(uri: str) -> dict[tuple[str, str], object]:
-    return {(r.data.tags["controller"], r.data.tags["seed"]): r for r in _runs(uri)}
+    return {(r.data.tags["controller"], r.data.tags["seed"]): r for r in runs_of(uri)}
 
 
 def _has_checkpoint(run: object) -> bool:
@@ -200,7 +194,7 @@ def _has_checkpoint(run: object) -> bool:
 
 
 @pytest.mark.slow
-def test_a_killed_sweep_started_again_continues_its_runs(tmp_path: Path) -> None:
+def test_a_killed_sweep_started_again_continues_itsruns_of(tmp_path: Path) -> None:
     """A real sweep (joblib launcher, two jobs in parallel: an H∞ population and Double DQN
     seeds) gets SIGKILL in its whole process group once runs of both jobs have checkpoints;
     the same command again continues the runs it left RUNNING (no new runs) and the final
@@ -251,7 +245,7 @@ def test_a_killed_sweep_started_again_continues_its_runs(tmp_path: Path) -> None
             if not any((folders["killed"] / "multirun").glob("*/.hydra")):
                 continue
             try:
-                runs = _runs(uri)
+                runs = runs_of(uri)
             except Exception:  # the store is being created
                 continue
             going = {
@@ -287,22 +281,11 @@ def test_a_killed_sweep_started_again_continues_its_runs(tmp_path: Path) -> None
         assert r.info.status == "FINISHED"
         client = MlflowClient(uri)
         other = MlflowClient(f"sqlite:///{folders['reference'] / 'mlflow.db'}")
-        ours = _history(client, r.info.run_id)
-        assert len(ours) == 400 and ours == _history(other, reference[key].info.run_id)
-        assert _steps(client, r.info.run_id).equals(_steps(other, reference[key].info.run_id))
+        ours = episode_returns(client, r.info.run_id)
+        assert len(ours) == 400 and ours == episode_returns(other, reference[key].info.run_id)
+        assert signal_table(client, r.info.run_id).equals(
+            signal_table(other, reference[key].info.run_id)
+        )
     resumed = [k for k in left if after[k].data.tags.get("resume_count")]  # type: ignore[attr-defined]
     assert resumed == [k for k in left if k in before], (left, resumed)
     print("continued after SIGKILL:", left)
-
-
-def _history(client: MlflowClient, run_id: str) -> list[float]:
-    h = client.get_metric_history(run_id, "episode_return")
-    assert len({m.step for m in h}) == len(h)
-    return [m.value for m in sorted(h, key=lambda m: m.step)]
-
-
-def _steps(client: MlflowClient, run_id: str) -> object:
-    import pandas as pd  # noqa: PLC0415
-
-    with tempfile.TemporaryDirectory() as tmp:
-        return pd.read_parquet(client.download_artifacts(run_id, "signals/steps.parquet", tmp))

@@ -8,9 +8,9 @@ import pytest
 from omegaconf import OmegaConf
 
 from cdqn.envs import make_env
-from cdqn.signals import SignalBuffer
-from cdqn.train import build
-from cdqn.trainer import TrainState, train
+from cdqn.training.build import build
+from cdqn.training.loop import TrainState, train
+from cdqn.training.signals import SignalBuffer
 from tests.conftest import compose_config
 
 COLS = {"reward": 2, "q1": 3, "q2": 4, "loss": 9}

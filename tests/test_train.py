@@ -15,8 +15,8 @@ import torch
 from mlflow.tracking import MlflowClient
 
 from cdqn.network import load_network
-from cdqn.signals import COLUMNS, FFT_COLUMNS
-from cdqn.train import run
+from cdqn.training.run import run
+from cdqn.training.signals import COLUMNS, FFT_COLUMNS
 from tests.conftest import TINY, compose_config
 
 METRICS = {

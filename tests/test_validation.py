@@ -10,7 +10,7 @@ from omegaconf import OmegaConf
 
 from cdqn.cli import EXIT_CONFIG, check_overrides, preflight
 from cdqn.config import Config, ConfigError, validate
-from cdqn.train import run
+from cdqn.training.run import run
 from tests.conftest import TINY, compose_config
 from tests.helpers import run_cli
 

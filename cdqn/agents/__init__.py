@@ -8,7 +8,7 @@ from cdqn.agents.base import Agent, StepRecord
 from cdqn.agents.controlled import ControlledAgent
 from cdqn.agents.ddqn import DDQNAgent
 from cdqn.config import ControllerConfig, TrainConfig
-from cdqn.control.factory import ControllerSetup
+from cdqn.control.setup import ControllerSetup
 from cdqn.network import QNetwork
 
 __all__ = ["Agent", "ControlledAgent", "DDQNAgent", "StepRecord", "make_agent"]

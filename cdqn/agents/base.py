@@ -29,7 +29,7 @@ class StepRecord(NamedTuple):
 
 
 class Agent(Protocol):
-    """A learning agent driven by :func:`cdqn.trainer.train`."""
+    """A learning agent driven by :func:`cdqn.training.loop.train`."""
 
     epsilon: float
 

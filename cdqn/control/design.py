@@ -40,7 +40,6 @@ from cdqn.config import ControllerConfig, HinfWeights, SynthesisConfig, ThetaBou
 from cdqn.control.box import NTKBox
 from cdqn.control.certificate import Certificate, ControllerMatrices, certify
 from cdqn.control.errors import DesignError
-from cdqn.control.factory import ControllerSetup
 from cdqn.control.h2 import LQRError, h2_gains_plant
 from cdqn.control.hinf import (
     HinfWeightSet,
@@ -54,6 +53,7 @@ from cdqn.control.hinf import (
 from cdqn.control.plant import check_plant
 from cdqn.control.reduction import hankel, truncate
 from cdqn.control.runtime import StateSpace, StaticGain
+from cdqn.control.setup import ControllerSetup
 from cdqn.control.structured import (
     FixedStructureWeights,
     PerformanceLoops,

@@ -1,59 +1,18 @@
-"""Build the runtime controller of a run from its controller and weights configs."""
+"""Build the runtime controller of a run from its controller and weights configs: the
+research-code designs, the gain-scheduled H2, or a synthesised design
+(:mod:`cdqn.control.design`)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from cdqn.config import CONTROLLERS, ConfigError, ControllerConfig, WeightsConfig
-from cdqn.control.runtime import (
-    NoControl,
-    RuntimeController,
-    ScheduledLQR,
-    StateSpace,
-    StaticGain,
-)
-
-
-@dataclass
-class ControllerSetup:
-    """The runtime controller and the record of where its design came from."""
-
-    controller: RuntimeController
-    source: str
-    """``paper`` (research-code values), ``synthesized`` or ``scheduled`` (per-step LQR)."""
-    design: dict[str, Any] = field(default_factory=dict)
-    """Design record, logged as ``design/controller.json`` (gains or matrices, bounds,
-    certificate)."""
-    artifacts: Path | None = None
-    """A folder of further design artefacts (plots, tables), logged under ``design/``."""
-
-    def tags(self) -> dict[str, str]:
-        """What the design keeps, as run tags: ``design_gamma_eff`` and ``design_step_scale``
-        (γ_eff and 1 + k1; DC values for ``hinf``; ``lo..hi`` over the box for ``h2``),
-        ``design_max_step_gain`` (largest α(1 + k1)Θ1 over the box) and
-        ``design_worst_pole`` (certificate); empty for designs without a learning target."""
-        lt = self.design.get("learning_target")
-        if not lt:
-            return {}
-
-        def fmt(v: Any) -> str:
-            if isinstance(v, list | tuple):
-                return f"{v[0]:.6g}..{v[1]:.6g}"
-            return f"{v:.6g}"
-
-        cert = self.design.get("certificate", {})
-        out = {
-            "design_gamma_eff": fmt(lt["gamma_eff"]),
-            "design_step_scale": fmt(lt["step_scale"]),
-            "design_max_step_gain": fmt(lt["max_step_gain"]),
-        }
-        if "worst_pole" in cert:
-            out["design_worst_pole"] = fmt(cert["worst_pole"])
-        return out
+from cdqn.control.errors import DesignError
+from cdqn.control.runtime import NoControl, ScheduledLQR, StateSpace, StaticGain
+from cdqn.control.setup import ControllerSetup
+from cdqn.control.target import TargetBox, check_target
 
 
 def make_controller(
@@ -80,6 +39,7 @@ def make_controller(
     if cfg.design == "paper":
         return _paper_controller(cfg, weights, lr)
     if cfg.design == "synthesize":
+        # python-control and the synthesis code take seconds to import: only for a synthesis
         from cdqn.control.design import synthesized_controller  # noqa: PLC0415
 
         return synthesized_controller(cfg, weights, discount, lr, box)
@@ -92,10 +52,8 @@ def _scheduled_h2(
     """The gain-scheduled H2 with the learning target of ``weights.target``, certified over
     the NTK box frozen at every sample and grid point (:func:`cdqn.control.h2.certify_scheduled`);
     :class:`DesignError` when the certificate fails."""
-    from cdqn.control.design import box_from_config  # noqa: PLC0415
-    from cdqn.control.errors import DesignError  # noqa: PLC0415
+    from cdqn.control.design import box_from_config  # noqa: PLC0415 (import time, above)
     from cdqn.control.h2 import certify_scheduled  # noqa: PLC0415
-    from cdqn.control.target import TargetBox, check_target  # noqa: PLC0415
 
     w_x, w_c = list(weights.h2.w_x), weights.h2.w_c
     target = TargetBox.of(weights.target)

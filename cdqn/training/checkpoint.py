@@ -29,9 +29,9 @@ import torch
 from mlflow.tracking import MlflowClient
 
 from cdqn.agents.base import Agent
-from cdqn.signals import COLUMNS, SignalBuffer
-from cdqn.tracking import retrying
-from cdqn.trainer import TrainState
+from cdqn.training.loop import TrainState
+from cdqn.training.signals import COLUMNS, SignalBuffer
+from cdqn.training.tracking import retrying
 
 log = logging.getLogger("cdqn")
 
@@ -122,7 +122,7 @@ class CheckpointStore:
         self.store_signals = store_signals
         self.kind = kind
         """The checkpoint dataclass stored (:class:`Checkpoint`; a population member's:
-        :class:`cdqn.population_checkpoint.MemberCheckpoint`, ordered by ``sequence``)."""
+        :class:`cdqn.training.population_checkpoint.MemberCheckpoint`, ordered by ``sequence``)."""
         self.retry_s = 0.0
         """Seconds a write is retried while the store does not answer."""
         self._next_slot = 0
@@ -228,13 +228,15 @@ def local_path(folder: str | Path, run_id: str) -> Path:
 def save_local(
     folder: str | Path,
     run_id: str,
-    ckpt: Checkpoint,
+    ckpt: Any,
     signals: SignalBuffer,
     pending: list[tuple[str, float, int, int]],
+    name: str = LOCAL_FILE,
 ) -> Path:
-    """Write ``ckpt`` with all its signal rows and the metrics not yet in the store
-    (``pending``) to :func:`local_path`, for a run whose tracking store went away."""
-    path = local_path(folder, run_id)
+    """Write ``ckpt`` (a :class:`Checkpoint` or a population member's checkpoint) with all
+    its signal rows and the metrics not yet in the store (``pending``) to
+    :func:`local_path` (file ``name`` there), for a run whose tracking store went away."""
+    path = local_path(folder, run_id).with_name(name)
     path.parent.mkdir(parents=True, exist_ok=True)
     data = _fields(ckpt)
     data["local_signals"] = signals.rows(0, ckpt.signal_rows).copy()
@@ -246,10 +248,10 @@ def save_local(
 
 
 def load_local(
-    folder: str | Path, run_id: str
-) -> tuple[Checkpoint, list[tuple[str, float, int, int]]] | None:
-    """The local checkpoint of ``run_id`` and its pending metrics, or None."""
-    path = local_path(folder, run_id)
+    folder: str | Path, run_id: str, kind: type = Checkpoint, name: str = LOCAL_FILE
+) -> tuple[Any, list[tuple[str, float, int, int]]] | None:
+    """The local checkpoint of ``run_id`` (a ``kind``) and its pending metrics, or None."""
+    path = local_path(folder, run_id).with_name(name)
     if not path.is_file():
         return None
     data = _decode(torch.load(path, weights_only=True))
@@ -258,7 +260,7 @@ def load_local(
         return None
     rows = data.pop("local_signals")
     pending = [(str(k), float(v), int(ts), int(st)) for k, v, ts, st in data.pop("pending")]
-    ckpt = Checkpoint(**data)
+    ckpt = kind(**data)
     ckpt.signals = rows if ckpt.signal_rows > 0 else None
     return ckpt, pending
 

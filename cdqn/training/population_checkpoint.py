@@ -1,11 +1,11 @@
 """Checkpoints of populations: every member's state between two population steps.
 
-A population (:mod:`cdqn.population`) checkpoints as a whole: each time its slowest member
+A population (:mod:`cdqn.training.population`) checkpoints as a whole: each time its slowest member
 has completed another ``train.checkpoint_every`` episodes, and when SIGINT/SIGTERM stops
 it.  Members' episodes have different lengths, so at that moment most members are inside
 an episode; a member's checkpoint therefore holds everything between two steps, not only
 what an episode boundary needs.  Each member's checkpoint is stored in its own MLflow run,
-in the slots of a single run (:class:`cdqn.checkpoint.CheckpointStore`), as a
+in the slots of a single run (:class:`cdqn.training.checkpoint.CheckpointStore`), as a
 :class:`MemberCheckpoint`:
 
 * ``agent``: the population agent's ``state_dict(i)`` for the member's row ``i``;
@@ -47,7 +47,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from cdqn.config import Config, ConfigError
-from cdqn.tracking import CONFIG_ARTIFACT
+from cdqn.training.tracking import CONFIG_ARTIFACT
 
 
 class PopulationAgent(Protocol):
@@ -74,7 +74,25 @@ class MemberCheckpoint:
     env: dict[str, Any]
     loop: dict[str, Any]
     signals: np.ndarray | None = None
-    """The signal rows, filled in by :meth:`cdqn.checkpoint.CheckpointStore.complete`."""
+    """The signal rows, filled in by :meth:`cdqn.training.checkpoint.CheckpointStore.complete`."""
+
+
+CLOSING_FILE = "closing.pt"
+"""Local file of a member that ended while the tracking store was away."""
+
+
+@dataclass
+class MemberClosing:
+    """What closing the run of a member that ended (FINISHED, or FAILED by divergence) while
+    the tracking store was away writes, kept in ``tracking.local_checkpoints`` until the
+    store answers again (with the metrics not yet written, and the model beside it)."""
+
+    status: str
+    reason: str | None
+    returns: list[float]
+    signal_rows: int
+    signals: np.ndarray | None = None
+    """The signal rows, filled in when read back."""
 
 
 def capture_member(

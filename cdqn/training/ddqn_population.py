@@ -1,8 +1,8 @@
 """The Double DQN agent of a population: ``K`` members' steps as two compiled calls.
 
 :class:`DDQNPopulation` is :class:`cdqn.agents.DDQNAgent` (fast path) for ``K`` members at
-once, with the interface of :class:`cdqn.population_step.ControlledPopulation` that
-:func:`cdqn.population.train_population` drives.  Per step and member it runs exactly the
+once, with the interface of :class:`cdqn.training.population_step.ControlledPopulation` that
+:func:`cdqn.training.population.train_population` drives.  Per step and member it runs exactly the
 single agent's algorithm:
 
 1. act: ε-greedy on ``Q(s, ·)`` (the member's own :class:`EpsilonGreedy`);
@@ -46,7 +46,7 @@ from cdqn.network import (
     forward_row,
     td_row,
 )
-from cdqn.population_step import CHECK, DONE
+from cdqn.training.population_step import CHECK, DONE
 from cdqn.vector_env import VectorStep
 
 
@@ -145,7 +145,7 @@ class DDQNPopulation:
     ) -> int:
         """One Double DQN step of every member on the environments' ``step``: signal rows
         into ``rows``, ``ret`` and ``t`` advanced, :attr:`flags` and :attr:`loss_seen` as in
-        :meth:`cdqn.population_step.ControlledPopulation.update`.  Returns the number of
+        :meth:`cdqn.training.population_step.ControlledPopulation.update`.  Returns the number of
         flagged members."""
         n, r = self.net, self.replay
         _record_kernel(
@@ -215,8 +215,8 @@ class DDQNPopulation:
 
     def state_dict(self, i: int) -> dict[str, Any]:
         """Member ``i``'s state between two population steps (the population checkpoint
-        protocol, :mod:`cdqn.population_checkpoint`): :meth:`member_state`, its cached forward
-        pass and its loop flag."""
+        protocol, :mod:`cdqn.training.population_checkpoint`): :meth:`member_state`, its
+        cached forward pass and its loop flag."""
         return {
             **self.member_state(i),
             "pass": (self.x[i].copy(), self.p[i].copy(), self.q[i].copy()),

@@ -19,7 +19,7 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 from cdqn.agents.base import Agent, StepRecord
 from cdqn.agents.episodic_replay import EpisodeTail, qualifies
 from cdqn.config import ReplayConfig
-from cdqn.signals import SignalBuffer
+from cdqn.training.signals import SignalBuffer
 
 RATE_WINDOW = 20
 """Episodes over which the progress bar's steps/s is measured (wall time, everything in)."""
@@ -65,7 +65,8 @@ class TrainState:
 def episode_stats(
     episode: int, rows: np.ndarray, returns: list[float], discount: float, replay_updates: int = 0
 ) -> EpisodeStats:
-    """Summarise one episode's rows of the signal table (columns of :mod:`cdqn.signals`)."""
+    """Summarise one episode's rows of the signal table (columns of
+    :mod:`cdqn.training.signals`)."""
     loss_mean, u_abs_mean, theta1_mean, unstable = _episode_means(rows, discount)
     return EpisodeStats(
         episode=episode,

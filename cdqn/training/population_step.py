@@ -248,7 +248,7 @@ class ControlledPopulation:
     ) -> int:
         """One controlled step of every member on the environments' ``step``.
 
-        Writes each member's signal row (columns of :data:`cdqn.signals.COLUMNS`, episode
+        Writes each member's signal row (columns of :data:`cdqn.training.signals.COLUMNS`, episode
         ``ep``, step ``t``) into ``rows``, then adds the reward to ``ret`` and counts the step
         in ``t``.  :attr:`flags` tells the loop what needs its attention: :data:`CHECK` for
         a step that fails the cheap divergence test (``u + x_e + loss`` finite and
@@ -291,7 +291,7 @@ class ControlledPopulation:
     def state_dict(self, i: int) -> dict[str, Any]:
         """Member ``i``'s state between two steps: parameters, the cached forward pass at
         ``s``, the integrator ``x_e``, controller and exploration state (the population
-        agents' checkpoint protocol, :mod:`cdqn.population_checkpoint`)."""
+        agents' checkpoint protocol, :mod:`cdqn.training.population_checkpoint`)."""
         n = self.net
         return {
             "w1t": n.w1t[i].copy(), "b1": n.b1[i].copy(), "w2": n.w2[i].copy(),

@@ -29,8 +29,8 @@ from mlflow.store.artifact.artifact_repository_registry import get_artifact_repo
 from mlflow.tracking import MlflowClient
 
 from cdqn.config import EXPERIMENT_TAGS, ConfigError
-from cdqn.signals import SignalBuffer, amplitude_spectra
-from cdqn.trainer import EpisodeStats
+from cdqn.training.loop import EpisodeStats
+from cdqn.training.signals import SignalBuffer, amplitude_spectra
 
 log = logging.getLogger("cdqn")
 T = TypeVar("T")
@@ -329,7 +329,8 @@ class Recorder:
         )
 
     def log_signals(self, signals: SignalBuffer, dt: float) -> None:
-        """``signals/steps.parquet`` and ``signals/fft.parquet`` (columns in cdqn.signals)."""
+        """``signals/steps.parquet`` and ``signals/fft.parquet`` (columns in
+        :mod:`cdqn.training.signals`)."""
         steps = signals.to_frame()
         with tempfile.TemporaryDirectory() as tmp:
             steps.to_parquet(Path(tmp) / "steps.parquet", compression="zstd", index=False)

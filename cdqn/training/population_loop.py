@@ -1,0 +1,264 @@
+"""The training loop of a population: ``K`` members stepped as one batch.
+
+:func:`train_population` is :func:`cdqn.training.loop.train` for all members at once: one
+call of the batched agent (:mod:`cdqn.training.population_step`,
+:mod:`cdqn.training.ddqn_population`) and of the vectorised environment
+(:mod:`cdqn.vector_env`) per population step, each member's signal rows and divergence test
+as a single run has them, members leaving the batch when they finish or diverge.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+from omegaconf import DictConfig
+from tqdm.auto import tqdm
+
+from cdqn.agents.base import StepRecord
+from cdqn.agents.episodic_replay import PopulationTail, Transitions, qualifies
+from cdqn.config import ReplayConfig
+from cdqn.training.loop import DivergenceError, _diagnose, episode_stats
+from cdqn.training.population_step import CHECK, DONE, ControlledPopulation
+from cdqn.training.signals import COLUMNS, SignalBuffer
+from cdqn.vector_env import VectorEnv
+
+if TYPE_CHECKING:  # a member's recorder is opened by the population's runs, not by the loop
+    from cdqn.training.tracking import Recorder
+
+
+@dataclass
+class Member:
+    """One seed of a population and its bookkeeping."""
+
+    seed: int
+    cfg: DictConfig
+    recorder: Recorder | None = None
+    signals: SignalBuffer = field(default_factory=SignalBuffer)
+    returns: list[float] = field(default_factory=list)
+    episode: int = 0
+    status: str = "RUNNING"
+    reason: str | None = None
+    carry: dict | None = None
+    replay_tail: Transitions | None = None
+    """Episodic replay: the transitions of the episode in progress, set for checkpoints."""
+    """Where a restored member stands between two steps (observation ``obs``, step ``t`` of
+    the episode, return so far ``ret``); None: it starts with a reset."""
+    checkpointed: int | None = None
+    """Episode of the member's last checkpoint, if any."""
+    logged: set[int] = field(default_factory=set)
+    """Episodes whose metrics are already stored (a resumed member skips them)."""
+
+    @property
+    def score(self) -> float:
+        return float(np.mean(self.returns[-100:])) if self.returns else float("nan")
+
+
+class _Staging:
+    """Per-step signal rows of all active members, written as one ``(K, 10)`` block per
+    step and moved into each member's :class:`SignalBuffer` in blocks."""
+
+    def __init__(self, k: int, capacity: int = 2048) -> None:
+        self.data = np.empty((capacity, k, len(COLUMNS)))
+        self.n = 0
+        self.flushed = np.zeros(k, dtype=np.int64)
+
+    def next_block(self, members: list[Member]) -> np.ndarray:
+        """The ``(K, 10)`` block of this step's rows, to be written in place."""
+        if self.n == len(self.data):
+            self.flush_all(members)
+        self.n += 1
+        return self.data[self.n - 1]
+
+    def flush(self, j: int, member: Member) -> None:
+        member.signals.extend(self.data[self.flushed[j] : self.n, j])
+        self.flushed[j] = self.n
+
+    def flush_all(self, members: list[Member]) -> None:
+        for j, member in enumerate(members):
+            self.flush(j, member)
+        self.n = 0
+        self.flushed[:] = 0
+
+    def select(self, keep: np.ndarray, members: list[Member]) -> None:
+        self.flush_all(members)
+        self.data = np.empty((len(self.data), len(keep), len(COLUMNS)))
+        self.flushed = np.zeros(len(keep), dtype=np.int64)
+
+
+def train_population(
+    agent: ControlledPopulation,
+    venv: VectorEnv,
+    members: list[Member],
+    *,
+    episodes: int,
+    discount: float,
+    q_limit: float,
+    on_episode: Callable[[Member, object], None] | None = None,
+    on_member_end: Callable[[Member, ControlledPopulation, int], None] | None = None,
+    progress: bool = False,
+    should_stop: Callable[[], bool] | None = None,
+    max_steps: int | None = None,
+    on_checkpoint: Callable[[list[tuple[int, Member]], np.ndarray, np.ndarray, np.ndarray], None]
+    | None = None,
+    checkpoint_every: int = 0,
+    replay: ReplayConfig | None = None,
+) -> None:
+    """The training loop of :func:`cdqn.training.loop.train` for all members at once.
+
+    Each member's environment is seeded with its seed at its first episode.  A member that
+    finishes its ``episodes`` or diverges leaves the batch (``on_member_end`` is called with
+    the member, the agent and its row, before the row is dropped).  ``max_steps`` (for the
+    benchmark) ends the loop after that many population steps.  ``replay``: episodic replay
+    after each member's qualifying episode, as :func:`cdqn.training.loop.train` does it.
+
+    ``on_checkpoint(items, obs, t, ret)`` (items: ``(row, member)`` pairs) is called between
+    two steps, with every member's signal rows flushed: each time the slowest member has
+    completed another ``checkpoint_every`` episodes, and when ``should_stop`` stops the
+    loop.  A member with a ``carry`` continues from it instead of starting with a reset.
+    """
+    members = list(members)
+    first = [venv.reset(j, m.seed) if m.carry is None else m.carry["obs"]
+             for j, m in enumerate(members)]  # fmt: skip
+    obs = np.stack(first)
+    for j, m in enumerate(members):
+        if m.carry is None:
+            agent.start_episode(j)
+    t = np.array([m.carry["t"] if m.carry else 0 for m in members], dtype=np.int64)
+    ret = np.array([m.carry["ret"] if m.carry else 0.0 for m in members])
+    every = checkpoint_every if on_checkpoint is not None else 0
+    due = (min(m.episode for m in members) // every + 1) * every if every else 0
+    ep = np.array([m.episode for m in members], dtype=float)
+    staging = _Staging(len(members))
+    tail = None
+    if replay is not None and replay.repeats > 0:
+        cap = replay.last or getattr(venv.envs[0].spec, "max_episode_steps", None) or 10_000
+        tail = PopulationTail(len(members), obs.shape[1], cap)
+        for j, m in enumerate(members):
+            if m.carry is not None and m.carry.get("replay_tail") is not None:
+                tail.restore(j, Transitions(**m.carry["replay_tail"]))
+
+    def with_tails(items: list[tuple[int, Member]]) -> list[tuple[int, Member]]:
+        """``items`` with each member's transitions of the episode in progress attached."""
+        for j, m in items:
+            if tail is not None:
+                m.replay_tail = tail.transitions(j, min(int(t[j]), replay.last or int(t[j])))  # type: ignore[union-attr]
+        return items
+
+    bar = tqdm(total=episodes * len(members), disable=not progress, unit="ep", leave=True)
+    steps = 0
+    try:
+        while members:
+            actions = agent.act(obs)
+            out = venv.step(actions)
+            rows = staging.next_block(members)
+            flagged = agent.update(actions, out, ep, t, ret, rows, q_limit)
+            if tail is not None:
+                tail.append(obs, actions, out.reward, out.obs, out.terminated)
+            obs = out.obs
+            leaving: list[int] = []
+            if flagged:
+                flags = agent.flags
+                for j in np.flatnonzero(flags == CHECK):  # the trainer's exact test
+                    row = rows[j].tolist()
+                    r = StepRecord(row[9], *row[3:9])
+                    if (
+                        abs(r.q1) <= q_limit
+                        and abs(r.q2) <= q_limit
+                        and math.isfinite(r.u + r.x_e)
+                        and (
+                            math.isfinite(r.loss) or (not agent.loss_seen[j] and math.isnan(r.loss))
+                        )
+                    ):
+                        agent.loss_seen[j] |= not math.isnan(r.loss)
+                        flags[j] = DONE if out.terminated[j] or out.truncated[j] else 0
+                        continue
+                    try:
+                        _diagnose(r, q_limit, members[j].episode, int(t[j] - 1))
+                    except DivergenceError as err:
+                        members[j].status, members[j].reason = "FAILED", f"diverged: {err}"
+                    leaving.append(j)
+                for j in np.flatnonzero(flags == DONE):
+                    m = members[j]
+                    staging.flush(j, m)
+                    replayed = 0
+                    end = (bool(out.terminated[j]), bool(out.truncated[j]), float(ret[j]))
+                    if tail is not None and qualifies(replay, *end):  # type: ignore[arg-type]
+                        steps_j = min(int(t[j]), replay.last or int(t[j]))  # type: ignore[union-attr]
+                        replayed = agent.replay(
+                            j,
+                            tail.transitions(j, steps_j),
+                            replay.repeats,
+                            q_limit,  # type: ignore[union-attr]
+                        )
+                        if replayed < 0:
+                            err = DivergenceError(
+                                f"update {-replayed - 1} of episodic replay failed the divergence "
+                                "test",
+                                m.episode,
+                                int(t[j] - 1),
+                            )
+                            m.status, m.reason = "FAILED", f"diverged: {err}"
+                            leaving.append(j)
+                            continue
+                    x_c = agent.controller.state(j)
+                    if x_c is not None and not np.all(np.isfinite(x_c)):
+                        err = DivergenceError(
+                            f"non-finite controller state x_c = {x_c}", m.episode, int(t[j] - 1)
+                        )
+                        m.status, m.reason = "FAILED", f"diverged: {err}"
+                        leaving.append(j)
+                        continue
+                    m.returns.append(float(ret[j]))
+                    start = m.signals.n - int(t[j])
+                    stats = episode_stats(
+                        m.episode, m.signals.rows(start), m.returns, discount, replayed
+                    )
+                    m.episode += 1
+                    if on_episode is not None:
+                        on_episode(m, stats)
+                    bar.update(1)
+                    if m.episode >= episodes:
+                        m.status = "FINISHED"
+                        leaving.append(j)
+                        continue
+                    obs[j] = venv.reset(j, None)
+                    agent.start_episode(j)
+                    t[j], ret[j], ep[j] = 0, 0.0, m.episode
+            steps += 1
+            stop = should_stop is not None and should_stop()
+            if stop or (max_steps is not None and steps >= max_steps):
+                gone = set(leaving)
+                survivors = [(j, m) for j, m in enumerate(members) if j not in gone]
+                if stop and on_checkpoint is not None and survivors:
+                    staging.flush_all(members)
+                    on_checkpoint(with_tails(survivors), obs, t, ret)
+                for m in members:
+                    if m.status == "RUNNING":
+                        m.status = "KILLED"
+                leaving = list(range(len(members)))
+            if leaving:
+                staging.flush_all(members)
+                for j in sorted(set(leaving)):
+                    if on_member_end is not None:
+                        on_member_end(members[j], agent, j)
+                keep = np.array([j for j in range(len(members)) if j not in set(leaving)])
+                members = [members[j] for j in keep]
+                if not members:
+                    break
+                agent.select(keep)
+                venv.select(keep)
+                if tail is not None:
+                    tail.select(keep)
+                staging.select(keep, members)
+                obs, t, ret, ep = obs[keep], t[keep], ret[keep], ep[keep]
+            if every and (slowest := min(m.episode for m in members)) >= due:
+                staging.flush_all(members)
+                assert on_checkpoint is not None
+                on_checkpoint(with_tails(list(enumerate(members))), obs, t, ret)
+                due = (slowest // every + 1) * every
+    finally:
+        bar.close()
