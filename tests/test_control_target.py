@@ -142,6 +142,27 @@ def test_scheduled_h2_rho_cap_lowers_the_discount_only_where_the_ratio_is_large(
     assert np.allclose(g_eff[rho <= 0.98 / 0.99], 0.99)
 
 
+def test_scheduled_h2_keeps_one_learning_target_whatever_the_transition() -> None:
+    """The scheduled H2's (γ_eff, 1 + k1) is one point of the target range, the same at a
+    transition whose next greedy action repeats the action (ρ ≈ 1) and at one whose does not
+    (ρ ≈ 0.3, outside the box): only k3 follows (Θ1, Θ2).  Projected per step, the LQR gains
+    gave γ_eff = −1 at the first and −0.95 at the second."""
+    conf = OmegaConf.to_object(compose_config(["env=cartpole", "controller=h2", *FAST]))
+    conf.weights.target.gamma_eff = [-1.0, -0.95]
+    setup = make_controller(conf.controller, conf.weights, 1.0, 5e-5)
+    ctrl = setup.controller
+    seen = []
+    for theta1, rho in ((300.0, 1.0), (300.0, 0.3), (120.0, 1.15), (700.0, -0.2)):
+        ctrl.step(0.01, 0.5, 0.4, theta1, rho * theta1)
+        seen.append(ctrl.gains)
+    k1, k2, k3 = np.array(seen).T
+    assert np.ptp(k1) == 0.0 and np.ptp(k2) == 0.0
+    assert np.ptp(k3) > 0.1
+    lt = setup.design["learning_target"]
+    assert lt["pinned"]["gamma_eff"][0] == lt["pinned"]["gamma_eff"][1]
+    assert -1.0 <= (1.0 - k2[0]) / (1.0 + k1[0]) <= -0.95
+
+
 def test_every_run_records_what_its_design_keeps(tracking_uri: str) -> None:
     from mlflow.tracking import MlflowClient
 

@@ -56,11 +56,12 @@ def _scheduled_h2(
     from cdqn.control.h2 import certify_scheduled  # noqa: PLC0415
 
     w_x, w_c = list(weights.h2.w_x), weights.h2.w_c
-    target = TargetBox.of(weights.target)
+    asked = TargetBox.of(weights.target)
     ntk_box = box if box is not None else box_from_config(weights.theta_bounds)
-    check_target(target, ntk_box, scheduled=True)
+    check_target(asked, ntk_box, scheduled=True)
     syn = cfg.synthesis
     research = cfg.h2_gain_map == "research"
+    target = _pinned_target(asked, ntk_box, discount, np.asarray(w_x), w_c, research)
     cert, rows = certify_scheduled(
         ntk_box, discount, np.asarray(w_x), w_c, research, target.array(), lr, syn.samples,
         (int(syn.grid[0]), int(syn.grid[1])), syn.seed, syn.margin, syn.plant,
@@ -79,7 +80,8 @@ def _scheduled_h2(
         "step_scale": [float(scale.min()), float(scale.max())],
         "k3": [float(k3.min()), float(k3.max())],
         "max_step_gain": float(np.max(lr * scale * rows[:, 0])),
-        "target": target.to_dict(),
+        "target": asked.to_dict(),
+        "pinned": target.to_dict(),
     }
     design = {
         "kind": "h2",
@@ -95,6 +97,34 @@ def _scheduled_h2(
     }
     ctrl = ScheduledLQR(discount, w_x, w_c, cfg.h2_gain_map, target.array())
     return ControllerSetup(ctrl, source="scheduled", design=design)
+
+
+def _pinned_target(
+    target: TargetBox, box: Any, discount: float, w_x: np.ndarray, w_c: float, research: bool
+) -> TargetBox:
+    """The learning target of the gain-scheduled H2 pinned to one point: the LQR gains at the
+    box's nominal (Θ1, Θ2), moved into ``target`` (:func:`cdqn.control.kernels.project_target`),
+    give ``(γ_eff*, 1 + k1*)``; every step then uses them, and only ``k3`` (and the optional
+    ``rho_cap``) follows the step's (Θ1, Θ2).
+
+    Why a point: the LQR gains move with ρ = Θ2/Θ1, and ρ jumps between transitions whose next
+    greedy action repeats the action (Θ2 holds the ``[a == b]`` term of the NTK) and those whose
+    does not; a γ_eff projected per step then takes different values on the two kinds, so the
+    Bellman equation being learned depends on the transition (docs/learning.md, "One learning
+    target per design")."""
+    from cdqn.control.h2 import scheduled_gains  # noqa: PLC0415 (import time, as above)
+
+    k1, k2, _ = scheduled_gains(
+        np.array([box.nominal], dtype=float), discount, w_x, w_c, research, target.array()
+    )[0]
+    if not (np.isfinite(k1) and np.isfinite(k2)):
+        raise DesignError(
+            f"h2 design: no LQR gain at the nominal point (Θ1, Θ2) = {tuple(box.nominal)} "
+            "to pin the learning target; change weights.h2 or weights.theta_bounds.nominal"
+        )
+    s = 1.0 + float(k1)
+    g = (discount - float(k2)) / s
+    return TargetBox((g, g), (s, s), target.rho_cap)
 
 
 def _paper_controller(cfg: ControllerConfig, weights: WeightsConfig, lr: float) -> ControllerSetup:
