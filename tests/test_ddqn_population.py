@@ -214,9 +214,9 @@ def test_ddqn_population_member_is_recorded_as_its_single_run(tracking_uri: str)
 
 
 def test_controller_discount_sets_the_double_dqn_target_discount() -> None:
-    """``controller.discount`` (γ of Double DQN's target) in single runs and populations;
-    null leaves ``train.discount``."""
-    for extra, gamma in (([], 1.0), (["controller.discount=0.99"], 0.99)):
+    """``controller.discount`` (γ of Double DQN's target, 0.99 by default) in single runs and
+    populations; null leaves ``train.discount``."""
+    for extra, gamma in (([], 0.99), (["controller.discount=null"], 1.0)):
         conf = OmegaConf.to_object(compose_config([*BASE, *extra]))
         job = build(conf, make_env(conf.env))
         setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
