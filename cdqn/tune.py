@@ -820,11 +820,17 @@ class Study:
         path = CONF_DIR / "controller" / f"{name}.yaml"
         if not path.is_file():
             raise ConfigError(f"tune.baseline={name}: no conf/controller/{name}.yaml")
+        raw = OmegaConf.load(path)
+        # a controller file in the global package (ddqn.yaml) also sets other groups' keys
+        own = raw.controller if "controller" in raw else raw
         with read_write(out):
             out.controller = OmegaConf.merge(
-                OmegaConf.structured(type(OmegaConf.to_object(cfg.controller))),
-                OmegaConf.load(path),
+                OmegaConf.structured(type(OmegaConf.to_object(cfg.controller))), own
             )
+            if "controller" in raw:
+                for key in raw:
+                    if key != "controller":
+                        out[key] = OmegaConf.merge(out[key], raw[key])
         return out
 
     def _curves(self, summary: dict[str, Any]) -> None:

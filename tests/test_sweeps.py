@@ -178,6 +178,7 @@ RESTART = [
     "controller=hinf_f,ddqn",
     "network=small",
     "train.episodes=400",  # both populations train long enough to be caught mid-way
+    "controller.train_freq=1",  # Double DQN: a minibatch every step (slower, caught mid-way too)
     "train.checkpoint_every=10",
     "train.population=2",
     "hydra.launcher.n_jobs=2",

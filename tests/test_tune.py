@@ -11,6 +11,7 @@ import optuna
 import pytest
 from hydra import compose, initialize_config_dir
 from mlflow.tracking import MlflowClient
+from omegaconf import OmegaConf
 
 from cdqn.tune import EpisodeMedianPruner, Study, area, ma100, padded, summary_text
 from tests.conftest import CONF_DIR
@@ -121,6 +122,7 @@ def test_clearly_losing_trial_is_pruned_at_an_intermediate_episode(tmp_path: Pat
         "~tune.space.step_scale",
         "~tune.space.replay",
         "tune.space.gamma_eff.choices=[-0.9,0.6]",
+        "weights.target.step_scale=[0.6,0.8]",  # the specification the curves below come from
         "tune.episodes=100",
         "tune.eval_seeds=0",
         "tune.pruner.interval=10",
@@ -390,3 +392,17 @@ def test_two_workers_through_the_joblib_launcher_share_one_study(tmp_path: Path)
     assert len(logs) == 2
     for log in logs:  # each worker found the same parent run through the study
         assert f"(MLflow parent run {parent.info.run_id})" in log.read_text()
+
+
+def test_the_double_dqn_baseline_is_configured_as_a_training_run_would_be() -> None:
+    """``tune.baseline=ddqn`` trains Double DQN with the settings ``controller=ddqn`` gives a
+    training run: its controller keys and the environment keys its file sets (raw
+    observations, ``env.normalize=false``), on the study's environment."""
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        tune_cfg = compose("tune", overrides=["env=acrobot", "controller=hinf_f"])
+        train_cfg = compose("config", overrides=["env=acrobot", "controller=ddqn"])
+    assert tune_cfg.env.normalize is True
+    out = Study._with_controller(tune_cfg, "ddqn")
+    assert OmegaConf.to_container(out.controller) == OmegaConf.to_container(train_cfg.controller)
+    assert out.env == train_cfg.env
+    assert out.env.normalize is False and out.env.id == "Acrobot-v1"
