@@ -80,6 +80,14 @@ CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 CONTROLLERS = ("none", "h2", "hinf", "hinf_f", "ddqn")
 PAPER_ENVS = ("cartpole", "acrobot", "mountaincar")
 PAPER_CONTROLLERS = ("h2", "hinf", "hinf_f", "ddqn")
+SWEEP_ORDER = tuple(
+    (env, ctrl)
+    for ctrl in ("ddqn", "h2", "hinf", "hinf_f")
+    for env in ("mountaincar", "acrobot", "cartpole")
+)
+"""The order in which ``sweeps/paper.yaml`` starts its jobs (Hydra's sweeper takes the product
+of its parameters in the order written): the longest jobs (Double DQN, Mountain car) first,
+so that two workers finish together instead of one waiting on a long job started last."""
 PAPER_SEEDS = 10
 PAPER_EPISODES = 2000
 EPISODE_CAP = {"cartpole": 200, "acrobot": 500, "mountaincar": 200}
@@ -381,16 +389,13 @@ def estimate_paper_sweep(
     metric_s = _median(metric)
     signal_s = signal_write_seconds_per_step(uri)
     jobs: dict[str, list[float]] = {"expected": [], "upper": []}
-    for env in PAPER_ENVS:
-        for ctrl in PAPER_CONTROLLERS:
-            for kind, length in (("expected", lengths[env]), ("upper", EPISODE_CAP[env])):
-                steps_per_run = episodes * length
-                run_s = (
-                    steps_per_run * (1.0 / rates[env][ctrl] + signal_s)
-                    + episodes * metric_s
-                    + per_run
-                )
-                jobs[kind].append(PAPER_SEEDS * run_s)
+    for env, ctrl in SWEEP_ORDER:
+        for kind, length in (("expected", lengths[env]), ("upper", EPISODE_CAP[env])):
+            steps_per_run = episodes * length
+            run_s = (
+                steps_per_run * (1.0 / rates[env][ctrl] + signal_s) + episodes * metric_s + per_run
+            )
+            jobs[kind].append(PAPER_SEEDS * run_s)
     total_steps = sum(
         PAPER_SEEDS * episodes * lengths[e] * len(PAPER_CONTROLLERS) for e in PAPER_ENVS
     )

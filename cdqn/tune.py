@@ -65,6 +65,7 @@ from optuna.pruners import BasePruner, NopPruner
 
 from cdqn.config import Config, ConfigError, register_configs, resolve_tracking_uri, validate
 from cdqn.control.errors import DesignError
+from cdqn.training.interrupt import GracefulStop
 
 try:
     import fcntl
@@ -443,6 +444,10 @@ class Study:
             base.tracking.uri = self.uri
         self.base = base
         self.boxes: dict[tuple[float, float], tuple[list[float], list[float]]] = {}
+        self.stop = GracefulStop()
+        """SIGINT/SIGTERM outside a population's training (synthesis, Optuna's bookkeeping):
+        the study stops before the next trial trains; while a population trains, its own
+        handler stops it at the episode boundary."""
 
     # the design of a specification -------------------------------------------------
 
@@ -565,6 +570,10 @@ class Study:
             self.tracker.end(child, "FAILED", "failed", f"{type(err).__name__}: {err}")
             raise
         self._log_design(child, setup)
+        if self.stop.requested():  # a signal during the synthesis: do not start training
+            self.tracker.end(child, "KILLED", "failed", "interrupted by a signal")
+            trial.set_user_attr("status", "interrupted")
+            raise KeyboardInterrupt
 
         reported: dict[int, float] = {}
 
@@ -678,7 +687,8 @@ class Study:
                  t.study, t.worker, self.parent, done, t.trials)  # fmt: skip
         t0 = time.perf_counter()
         try:
-            ran = self._trials(study, lock)
+            with self.stop:
+                ran = self._trials(study, lock)
         except KeyboardInterrupt:
             self.tracker.client.set_tag(self.parent, "interrupted", "true")
             self.tracker.client.set_terminated(self.parent, "KILLED")
@@ -731,6 +741,8 @@ class Study:
                 study.optimize(objective, n_trials=1, catch=(RuntimeError,))
             finally:
                 lock.release()
+            if self.stop.requested():  # a signal during Optuna's bookkeeping of the trial
+                raise KeyboardInterrupt
         return ran
 
     def close(self, study: Any, wall: float) -> dict[str, Any]:

@@ -213,3 +213,21 @@ def test_benchmark_reports_the_documented_fields(capsys: pytest.CaptureFixture[s
     assert set(out["population"]["by_controller"]) == {"none", "hinf_f", "ddqn"}
     assert out["population"]["by_controller"]["ddqn"]["speedup"] > 0
     assert bench.makespan([3.0, 1.0, 1.0, 1.0], 2) == 3.0
+
+
+def test_the_sweep_estimate_starts_jobs_in_the_order_of_the_paper_sweep() -> None:
+    """``bench.SWEEP_ORDER`` is the job order of ``sweeps/paper.yaml`` (Hydra's product of
+    its parameters in the order written), so the estimated makespan is the sweep's."""
+    import itertools
+
+    import yaml
+
+    from tests.conftest import CONF_DIR
+
+    sweep = yaml.safe_load((CONF_DIR.parent / "sweeps" / "paper.yaml").read_text())
+    params = sweep["hydra"]["sweeper"]["params"]
+    values = {k: str(v).split(",") for k, v in params.items()}
+    jobs = [dict(zip(values, combo, strict=True)) for combo in itertools.product(*values.values())]
+    assert [(j["env"], j["controller"]) for j in jobs] == list(bench.SWEEP_ORDER)
+    assert {c for _, c in bench.SWEEP_ORDER} == set(bench.PAPER_CONTROLLERS)
+    assert {e for e, _ in bench.SWEEP_ORDER} == set(bench.PAPER_ENVS)

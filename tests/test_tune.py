@@ -302,7 +302,7 @@ def test_interrupted_study_continues_with_the_cut_trial(tmp_path: Path) -> None:
     import time
 
     args = [
-        *_overrides(tmp_path, "cut", 1, ["tune.episodes=400", "tune.eval_seeds=0"]),
+        *_overrides(tmp_path, "cut", 1, ["tune.episodes=20000", "tune.eval_seeds=0"]),
         "hydra.run.dir=" + str(tmp_path / "out"),
     ]
     log = (tmp_path / "first.log").open("w")
