@@ -45,6 +45,9 @@ class EnvConfig:
     """Map every observation feature with finite bounds affinely to [−1, 1]."""
     solve_threshold: float | None = 195.0
     """Moving-average return (100 episodes) at which the task counts as solved."""
+    eps_dec: float = 1e-4
+    """This environment's decrease of ε after each random action, taken by train.eps_dec
+    (research code: 1e-4; Acrobot explores longer, docs/learning.md)."""
 
 
 @dataclass
@@ -263,7 +266,7 @@ class TrainConfig:
     eps_end: float = 0.01
     """ε stops decreasing once below this value."""
     eps_dec: float = 1e-4
-    """Decrease of ε after each random action (research code)."""
+    """Decrease of ε after each random action (default: the environment's env.eps_dec)."""
     bootstrap_terminal: bool = False
     """Bootstrap from max Q(s') at terminal steps too (the research code's behaviour); by
     default only truncated steps (the time limit) bootstrap, terminal ones do not."""

@@ -66,6 +66,18 @@ def test_weights_follow_the_env_choice() -> None:
     assert cfg.weights.h2.w_c == 20000.0
 
 
+def test_exploration_schedule_follows_the_env_unless_train_sets_it() -> None:
+    def eps_dec(*overrides: str) -> float:
+        conf: Config = OmegaConf.to_object(compose_config(list(overrides)))  # type: ignore[assignment]
+        return conf.train.eps_dec
+
+    assert eps_dec("env=cartpole") == eps_dec("env=mountaincar") == 1e-4  # research code
+    assert eps_dec("env=acrobot") == 1e-5
+    assert eps_dec("env=acrobot", "train.eps_dec=3e-4") == 3e-4
+    assert eps_dec("env.id=LunarLander-v3") == 1e-4
+    assert eps_dec("env=cartpole", "env.eps_dec=2e-5") == 2e-5
+
+
 def test_any_discrete_gymnasium_id_runs_through_env_id() -> None:
     cfg = compose_config(["env.id=CartPole-v0", "env.max_episode_steps=null"])
     env = make_env(OmegaConf.to_object(cfg).env)  # type: ignore[union-attr]
