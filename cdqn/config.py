@@ -150,6 +150,19 @@ class ReplayConfig:
 
 
 @dataclass
+class DDQNSettings:
+    """Double DQN's settings that depend on the environment (docs/ddqn.md)."""
+
+    lr: float | None = None
+    """α of Double DQN's SGD step on this environment (null: train.lr, the paper's α)."""
+    normalize: bool = False
+    """Double DQN's observations: the environment's own (false), or each feature mapped to
+    [−1, 1] as env.normalize does (true)."""
+    target_update: int = 500
+    """Environment steps between Double DQN's target-network copies on this environment."""
+
+
+@dataclass
 class WeightsConfig:
     name: str = "cartpole"
     """Name of this weight set."""
@@ -167,6 +180,9 @@ class WeightsConfig:
     """Learning target of the synthesised designs (γ_eff and 1 + k1 ranges)."""
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     """Episodic replay of the controlled agents."""
+    ddqn: DDQNSettings = field(default_factory=DDQNSettings)
+    """Double DQN on this environment (controller=ddqn takes controller.lr,
+    controller.target_update and env.normalize from here)."""
 
 
 @dataclass
@@ -251,6 +267,8 @@ class ControllerConfig:
     """DDQN: environment steps between target-network copies."""
     discount: float | None = None
     """DDQN: γ of its TD target; null: train.discount (docs/ddqn.md, γ and the time limit)."""
+    lr: float | None = None
+    """DDQN: α of its SGD step; null: train.lr (controller=ddqn sets weights.ddqn.lr)."""
 
 
 @dataclass
@@ -443,6 +461,10 @@ def validate(cfg: Config) -> None:
         (
             cfg.controller.discount is None or 0 < cfg.controller.discount <= 1,
             f"controller.discount={cfg.controller.discount}: γ must lie in (0, 1] or be null",
+        ),
+        (
+            cfg.controller.lr is None or cfg.controller.lr > 0,
+            f"controller.lr={cfg.controller.lr}: α must be > 0 or null (train.lr)",
         ),
         (
             len(cfg.weights.h2.w_x) == 3 and all(w >= 0 for w in cfg.weights.h2.w_x),

@@ -7,7 +7,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from cdqn.agents import make_agent
+from cdqn.agents import DDQNAgent, make_agent
 from cdqn.config import Config, validate
 from cdqn.control.factory import make_controller
 from cdqn.envs import env_sizes, make_env
@@ -76,6 +76,29 @@ def test_exploration_schedule_follows_the_env_unless_train_sets_it() -> None:
     assert eps_dec("env=acrobot", "train.eps_dec=3e-4") == 3e-4
     assert eps_dec("env.id=LunarLander-v3") == 1e-4
     assert eps_dec("env=cartpole", "env.eps_dec=2e-5") == 2e-5
+
+
+def test_double_dqn_takes_its_environments_settings_unless_overridden() -> None:
+    """``weights.ddqn`` (conf/weights) gives Double DQN's α, target period and observations
+    per environment; the agent steps with that α."""
+
+    def settings(*overrides: str) -> tuple[float, int, bool]:
+        conf: Config = OmegaConf.to_object(compose_config(["controller=ddqn", *overrides]))  # type: ignore[assignment]
+        env = make_env(conf.env)
+        net = QNetwork(NetworkSpec(*env_sizes(env), 8))
+        env.close()
+        agent = make_agent(conf.controller, conf.train, net, None, np.random.default_rng(0))  # type: ignore[arg-type]
+        assert isinstance(agent, DDQNAgent)
+        assert agent.optimizer.param_groups[0]["lr"] == agent.lr
+        return agent.lr, agent.cfg.target_update, conf.env.normalize
+
+    assert settings("env=cartpole") == (5e-5, 500, False)  # the paper's α and observations
+    assert settings("env=acrobot") == (5e-5, 500, False)
+    assert settings("env=mountaincar") == (1e-3, 125, True)  # conf/weights/mountaincar.yaml
+    assert settings("env=mountaincar", "controller.lr=2e-4", "controller.target_update=500",
+                    "env.normalize=false") == (2e-4, 500, False)  # fmt: skip
+    assert settings("env=cartpole", "train.lr=1e-4") == (1e-4, 500, False)
+    assert compose_config(["controller=hinf_f", "env=acrobot"]).env.normalize  # the NTK box's
 
 
 def test_any_discrete_gymnasium_id_runs_through_env_id() -> None:

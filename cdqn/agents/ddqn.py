@@ -36,12 +36,12 @@ class DDQNAgent:
         self.fast = FastTwoLayer(net)
         self.fast_target = FastTwoLayer(self.target)
         self.use_fast_path = train.fast_path
-        self.lr = train.lr
+        self.lr = train.lr if cfg.lr is None else cfg.lr
         self.cfg = cfg
         self.discount = train.discount if cfg.discount is None else cfg.discount
         self.explorer = EpsilonGreedy(train, net.spec.n_actions, rng)
         self.buffer = ReplayBuffer(cfg.buffer_size, net.spec.n_obs, rng)
-        self.optimizer = torch.optim.SGD(net.parameters(), lr=train.lr)
+        self.optimizer = torch.optim.SGD(net.parameters(), lr=self.lr)
         self.dtype = net.hidden.weight.dtype
         self.steps = 0
         self.last_loss = float("nan")

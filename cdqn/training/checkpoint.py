@@ -128,8 +128,9 @@ class CheckpointStore:
         self._next_slot = 0
         self._rows_saved = 0
 
-    def save(self, ckpt: Any, signals: SignalBuffer) -> None:
-        """Write the signal rows not yet stored, then the state into the older slot."""
+    def save(self, ckpt: Any, signals: SignalBuffer, announce: bool = True) -> None:
+        """Write the signal rows not yet stored, then the state into the older slot
+        (``announce``: log it; a population logs one line for all its members)."""
         with tempfile.TemporaryDirectory() as tmp:
             if self.store_signals and ckpt.signal_rows > self._rows_saved:
                 start, stop = self._rows_saved, ckpt.signal_rows
@@ -142,7 +143,8 @@ class CheckpointStore:
             slot = SLOTS[self._next_slot]
             self._log(path, f"{ROOT}/slot-{slot}")
         self._next_slot = 1 - self._next_slot
-        log.info("checkpoint at episode %d (slot %s)", ckpt.episode, slot)
+        if announce:
+            log.info("checkpoint at episode %d (slot %s)", ckpt.episode, slot)
 
     def _log(self, path: Path, artifact_path: str) -> None:
         """One artifact, retried while the store does not answer (``retry_s``)."""

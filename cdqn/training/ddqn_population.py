@@ -78,7 +78,8 @@ class DDQNPopulation:
         self.explorers = [EpsilonGreedy(train, spec.n_actions, rng) for rng in self.rngs]
         self.replay = StackedReplay(k, cfg.buffer_size, spec.n_obs)
         discount = train.discount if cfg.discount is None else cfg.discount
-        self.hyper = np.array([train.lr, discount])
+        lr = train.lr if cfg.lr is None else cfg.lr
+        self.hyper = np.array([lr, discount])
         self.schedule = np.array([cfg.learning_starts, cfg.train_freq, cfg.target_update])
         self.steps = np.zeros(k, dtype=np.int64)
         self.last_loss = np.full(k, np.nan)

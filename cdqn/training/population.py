@@ -216,8 +216,11 @@ def train_members(
                 for (_, m), ckpt in zip(items, ckpts, strict=True):
                     assert m.recorder is not None
                     m.recorder.flush()
-                    stores[m.seed].save(ckpt, m.signals)
+                    stores[m.seed].save(ckpt, m.signals, announce=False)
                     m.checkpointed = m.episode
+                first, last = min(m.episode for _, m in items), max(m.episode for _, m in items)
+                span = f"episode {first}" if first == last else f"episodes {first}-{last}"
+                log.info("checkpoint at %s (%d members)", span, len(items))
             except TrackingOutage as err:
                 went_away(err)
         if outage:  # every member of this checkpoint into its local file, one sequence
