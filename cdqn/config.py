@@ -466,6 +466,14 @@ def validate(cfg: Config) -> None:
             cfg.controller.lr is None or cfg.controller.lr > 0,
             f"controller.lr={cfg.controller.lr}: α must be > 0 or null (train.lr)",
         ),
+        *(
+            (
+                cfg.controller.name == "ddqn" or value is None,
+                f"controller.{key}={value}: a Double DQN setting (controller=ddqn); "
+                f"{cfg.controller.name} uses train.{key}",
+            )
+            for key, value in (("lr", cfg.controller.lr), ("discount", cfg.controller.discount))
+        ),
         (
             len(cfg.weights.h2.w_x) == 3 and all(w >= 0 for w in cfg.weights.h2.w_x),
             f"weights.h2.w_x={list(cfg.weights.h2.w_x)}: need 3 non-negative diagonal entries",

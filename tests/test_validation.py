@@ -48,6 +48,12 @@ BAD = [
     (["network.width=[1"], ["network.width=[1", "cannot parse"]),
     (["resume=abc", "train.lr=0.1"], ["train.lr=0.1", "resume=<run_id> continues"]),
     (["seed=-1"], ["seed=-1", ">= 0"]),
+    (["controller=ddqn", "controller.lr=0"], ["controller.lr=0", "α must be > 0"]),
+    (
+        ["controller=hinf", "controller.lr=0.001"],
+        ["controller.lr=0.001", "controller=ddqn", "train.lr"],
+    ),
+    (["controller.discount=0.9"], ["controller.discount=0.9", "Double DQN", "train.discount"]),
     (["resume="], ["resume=''", "give the MLflow run id", "resume=<run_id>"]),
     (["env.id=Taxi-v3"], ["env.id='Taxi-v3'", "not a registered", "did you mean Taxi-v4?"]),
 ]
