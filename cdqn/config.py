@@ -43,6 +43,9 @@ class EnvConfig:
     """Observation features fed to the network (None: all)."""
     normalize: bool = False
     """Map every observation feature with finite bounds affinely to [−1, 1]."""
+    normalize_scale: list[float] | None = None
+    """With normalize: the half-width w of each observed feature's range, [−w, w] instead of
+    [−1, 1] (one per feature; null: 1 for all).  Weighs features in the NTK (docs/learning.md)."""
     solve_threshold: float | None = 195.0
     """Moving-average return (100 episodes) at which the task counts as solved."""
     eps_dec: float = 1e-4

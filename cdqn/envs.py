@@ -140,26 +140,28 @@ class ObservationSubset(gym.ObservationWrapper):
 
 class ObservationScale(gym.ObservationWrapper):
     """Map each observation feature affinely from its ``[low, high]`` to ``[−1, 1]``
-    (``env.normalize``); features with an infinite bound are passed through unchanged.
+    (``env.normalize``), or to ``[−w, w]`` with per-feature half-widths ``widths``
+    (``env.normalize_scale``); features with an infinite bound are passed through unchanged.
 
     A wide network's NTK compares inputs through ``x·y`` and its ReLU pattern: features on
     very different scales (Mountain car's velocity is a hundredth of its position) leave
     the kernel blind to the small ones, so every state looks alike to the learning update
     (Θ2/Θ1 within 1 ± 0.007 on Mountain car)."""
 
-    def __init__(self, env: gym.Env) -> None:
+    def __init__(self, env: gym.Env, widths: list[float] | None = None) -> None:
         super().__init__(env)
         space = env.observation_space
         assert isinstance(space, Box)
         low, high = space.low.astype(np.float64), space.high.astype(np.float64)
+        w = np.ones(low.shape) if widths is None else np.asarray(widths, dtype=np.float64)
         finite = np.isfinite(low) & np.isfinite(high) & (high > low)
         self.offset = np.where(finite, 0.5 * (low + high), 0.0).astype(space.dtype)
-        self.scale = np.where(finite, 2.0 / np.where(finite, high - low, 1.0), 1.0).astype(
+        self.scale = np.where(finite, 2.0 * w / np.where(finite, high - low, 1.0), 1.0).astype(
             space.dtype
         )
         self.observation_space = Box(
-            np.where(finite, -1.0, low).astype(space.dtype),
-            np.where(finite, 1.0, high).astype(space.dtype),
+            np.where(finite, -w, low).astype(space.dtype),
+            np.where(finite, w, high).astype(space.dtype),
             dtype=space.dtype,
         )
 
@@ -192,7 +194,15 @@ def make_env(cfg: EnvConfig) -> gym.Env:
             )
         env = ObservationSubset(env, list(cfg.obs_indices))
     if cfg.normalize:
-        env = ObservationScale(env)
+        widths = cfg.normalize_scale
+        n = env.observation_space.shape[0]  # type: ignore[index]
+        if widths is not None and (len(widths) != n or not all(w > 0 for w in widths)):
+            env.close()
+            raise ConfigError(
+                f"env.normalize_scale={list(widths)}: give {n} half-widths > 0, one per "
+                f"observed feature of {cfg.id}, or null"
+            )
+        env = ObservationScale(env, None if widths is None else list(widths))
     return env
 
 
