@@ -202,7 +202,7 @@ def make_env(cfg: EnvConfig) -> gym.Env:
                 f"env.normalize_scale={list(widths)}: give {n} half-widths > 0, one per "
                 f"observed feature of {cfg.id}, or null"
             )
-        env = ObservationScale(env, None if widths is None else list(widths))
+        env = ObservationScale(env, widths)
     return env
 
 

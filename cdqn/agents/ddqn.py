@@ -27,6 +27,13 @@ from cdqn.config import ControllerConfig, TrainConfig
 from cdqn.network import FastTwoLayer, QNetwork, double_dqn_step
 
 
+def step_settings(cfg: ControllerConfig, train: TrainConfig) -> tuple[float, float]:
+    """Double DQN's (α, γ): ``controller.lr`` and ``controller.discount``, each falling back
+    to ``train.lr`` / ``train.discount`` when null (single runs and populations alike)."""
+    lr = train.lr if cfg.lr is None else cfg.lr
+    return lr, train.discount if cfg.discount is None else cfg.discount
+
+
 class DDQNAgent:
     def __init__(
         self, net: QNetwork, cfg: ControllerConfig, train: TrainConfig, rng: np.random.Generator
@@ -36,9 +43,8 @@ class DDQNAgent:
         self.fast = FastTwoLayer(net)
         self.fast_target = FastTwoLayer(self.target)
         self.use_fast_path = train.fast_path
-        self.lr = train.lr if cfg.lr is None else cfg.lr
+        self.lr, self.discount = step_settings(cfg, train)
         self.cfg = cfg
-        self.discount = train.discount if cfg.discount is None else cfg.discount
         self.explorer = EpsilonGreedy(train, net.spec.n_actions, rng)
         self.buffer = ReplayBuffer(cfg.buffer_size, net.spec.n_obs, rng)
         self.optimizer = torch.optim.SGD(net.parameters(), lr=self.lr)

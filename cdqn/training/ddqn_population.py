@@ -37,6 +37,7 @@ import numpy as np
 from numba import njit
 
 from cdqn.agents.base import EpsilonGreedy
+from cdqn.agents.ddqn import step_settings
 from cdqn.agents.replay import StackedReplay
 from cdqn.config import ControllerConfig, TrainConfig
 from cdqn.network import (
@@ -77,9 +78,7 @@ class DDQNPopulation:
         self.rngs = list(rngs)
         self.explorers = [EpsilonGreedy(train, spec.n_actions, rng) for rng in self.rngs]
         self.replay = StackedReplay(k, cfg.buffer_size, spec.n_obs)
-        discount = train.discount if cfg.discount is None else cfg.discount
-        lr = train.lr if cfg.lr is None else cfg.lr
-        self.hyper = np.array([lr, discount])
+        self.hyper = np.array(step_settings(cfg, train))
         self.schedule = np.array([cfg.learning_starts, cfg.train_freq, cfg.target_update])
         self.steps = np.zeros(k, dtype=np.int64)
         self.last_loss = np.full(k, np.nan)
