@@ -81,15 +81,40 @@ def check_train(cfg: DictConfig) -> None:
     conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
     validate(conf)
     env = conf.env
-    _check_env(env.id, env.max_episode_steps, tuple(env.obs_indices or ()) or None)
+    _check_env(
+        env.id,
+        env.max_episode_steps,
+        tuple(env.obs_indices or ()) or None,
+        env.normalize,
+        tuple(env.normalize_scale) if env.normalize_scale is not None else None,
+        env.rbf_centres,
+        env.rbf_width,
+    )
 
 
 @functools.lru_cache(maxsize=32)
-def _check_env(env_id: str, max_steps: int | None, obs_indices: tuple[int, ...] | None) -> None:
+def _check_env(
+    env_id: str,
+    max_steps: int | None,
+    obs_indices: tuple[int, ...] | None,
+    normalize: bool,
+    normalize_scale: tuple[float, ...] | None,
+    rbf_centres: int | None,
+    rbf_width: float,
+) -> None:
+    """Build the environment once as the run would (ids, features, scale, radial features)."""
     from cdqn.envs import make_env  # noqa: PLC0415 (gymnasium only once the rest passed)
 
-    indices = list(obs_indices) if obs_indices is not None else None
-    make_env(EnvConfig(id=env_id, max_episode_steps=max_steps, obs_indices=indices)).close()
+    cfg = EnvConfig(
+        id=env_id,
+        max_episode_steps=max_steps,
+        obs_indices=list(obs_indices) if obs_indices is not None else None,
+        normalize=normalize,
+        normalize_scale=list(normalize_scale) if normalize_scale is not None else None,
+        rbf_centres=rbf_centres,
+        rbf_width=rbf_width,
+    )
+    make_env(cfg).close()
 
 
 def check_evaluate(cfg: DictConfig) -> None:

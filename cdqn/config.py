@@ -46,6 +46,12 @@ class EnvConfig:
     normalize_scale: list[float] | None = None
     """With normalize: the half-width w of each observed feature's range, [−w, w] instead of
     [−1, 1] (one per feature; null: 1 for all).  Weighs features in the NTK (docs/learning.md)."""
+    rbf_centres: int | None = None
+    """Radial basis features: Gaussians centred on a grid of this many points per observed
+    feature over the (scaled) observation box, fed to the network instead of the
+    observation (null: the observation itself).  Makes the NTK local (docs/learning.md)."""
+    rbf_width: float = 1.0
+    """With rbf_centres: each Gaussian's standard deviation in grid spacings."""
     solve_threshold: float | None = 195.0
     """Moving-average return (100 episodes) at which the task counts as solved."""
     eps_dec: float = 1e-4
@@ -153,6 +159,16 @@ class ReplayConfig:
 
 
 @dataclass
+class IntegratorReset:
+    """Per controller: reset x_e at each episode start (true, the research code) or keep it
+    across episodes (false: k3·x_e becomes a slowly adapting bias of the TD term)."""
+
+    h2: bool = True
+    hinf: bool = True
+    hinf_f: bool = True
+
+
+@dataclass
 class DDQNSettings:
     """Double DQN's settings that depend on the environment (docs/ddqn.md)."""
 
@@ -163,6 +179,8 @@ class DDQNSettings:
     [−1, 1] as env.normalize does (true)."""
     target_update: int = 500
     """Environment steps between Double DQN's target-network copies on this environment."""
+    rbf_centres: int | None = None
+    """Double DQN's radial basis features (env.rbf_centres; null: the observation itself)."""
 
 
 @dataclass
@@ -183,9 +201,12 @@ class WeightsConfig:
     """Learning target of the synthesised designs (γ_eff and 1 + k1 ranges)."""
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     """Episodic replay of the controlled agents."""
+    reset_integrator: IntegratorReset = field(default_factory=lambda: IntegratorReset())
+    """Whether each controlled agent resets the integrator x_e at each episode start on this
+    environment (taken by controller.reset_integrator; docs/learning.md)."""
     ddqn: DDQNSettings = field(default_factory=DDQNSettings)
     """Double DQN on this environment (controller=ddqn takes controller.lr,
-    controller.target_update and env.normalize from here)."""
+    controller.target_update, env.normalize and env.rbf_centres from here)."""
 
 
 @dataclass
@@ -253,7 +274,8 @@ class ControllerConfig:
     """H2 only: paper, (k1, k2, k3) = (K1, K2, -K3) of u = -K x_a; research, the research
     code's (-K3, -K2, K1)."""
     reset_integrator: bool = True
-    """Reset the tracking-error integrator x_e at each episode start."""
+    """Reset the tracking-error integrator x_e at each episode start (default: the
+    environment's weights.reset_integrator)."""
     reset_state: bool = True
     """Reset the dynamic controller's state at each episode start (paper Sec. 4.2)."""
     synthesis: SynthesisConfig = field(default_factory=SynthesisConfig)
@@ -438,6 +460,11 @@ def validate(cfg: Config) -> None:
             cfg.train.checkpoint_every >= 0,
             f"train.checkpoint_every={cfg.train.checkpoint_every}: must be >= 0 (0: off)",
         ),
+        (
+            cfg.env.rbf_centres is None or cfg.env.rbf_centres >= 2,
+            f"env.rbf_centres={cfg.env.rbf_centres}: must be >= 2 (centres per feature) or null",
+        ),
+        (cfg.env.rbf_width > 0, f"env.rbf_width={cfg.env.rbf_width}: must be > 0"),
         (
             cfg.env.max_episode_steps is None or cfg.env.max_episode_steps > 0,
             f"env.max_episode_steps={cfg.env.max_episode_steps}: must be > 0 or null",

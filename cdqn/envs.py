@@ -169,6 +169,48 @@ class ObservationScale(gym.ObservationWrapper):
         return (observation - self.offset) * self.scale
 
 
+class RadialFeatures(gym.ObservationWrapper):
+    """Gaussian radial basis features of the observation (``env.rbf_centres``).
+
+    With ``n`` centres per feature on a grid over the observation box ``[low, high]`` (the
+    scaled box when ``env.normalize`` is on), the network sees, instead of ``s``,
+
+    .. math::  \\phi_j(s) = \\exp\\Big(-\\tfrac12 \\sum_i
+               \\big((s_i - c_{ji})/\\sigma_i\\big)^2\\Big),
+               \\qquad \\sigma_i = w\\,(\\mathrm{high}_i - \\mathrm{low}_i)/(n - 1),
+
+    ``n^d`` features for ``d`` observed features (``w``: ``env.rbf_width``, in grid spacings).
+    The NTK of the two-layer ReLU network compares inputs through ``x·y`` and the angle
+    between them: on raw or scaled observations every pair of states is similar to it, so one
+    online step moves Q over the whole state space alike.  On ``φ`` two states far apart share
+    no features, and a step mostly moves Q near the state it learns from (docs/learning.md,
+    "Radial basis features")."""
+
+    MAX_FEATURES = 4096
+    """The largest n^d accepted (the network's input size)."""
+
+    def __init__(self, env: gym.Env, centres: int, width: float) -> None:
+        super().__init__(env)
+        space = env.observation_space
+        assert isinstance(space, Box)
+        low, high = space.low.astype(np.float64), space.high.astype(np.float64)
+        grid = [np.linspace(lo, hi, centres) for lo, hi in zip(low, high, strict=True)]
+        mesh = np.meshgrid(*grid, indexing="ij")
+        self.dtype = space.dtype
+        self.centres = np.stack(mesh, axis=-1).reshape(-1, len(low)).astype(self.dtype)
+        self.sigma = (width * (high - low) / (centres - 1)).astype(self.dtype)
+        self.observation_space = Box(0.0, 1.0, (len(self.centres),), dtype=self.dtype)
+
+    def features(self, obs: np.ndarray) -> np.ndarray:
+        """``φ`` of each row of ``obs`` ``(K, d)``: ``(K, n^d)``; the population's
+        environments call this on all members at once, with the same result per row."""
+        z = (obs[:, None, :] - self.centres[None, :, :]) / self.sigma
+        return np.exp(-0.5 * (z * z).sum(axis=-1)).astype(self.dtype)
+
+    def observation(self, observation: np.ndarray) -> np.ndarray:
+        return self.features(np.asarray(observation)[None, :])[0]
+
+
 def make_env(cfg: EnvConfig) -> gym.Env:
     """Build the environment of ``cfg``: gymnasium id, episode cap and feature subset."""
     if cfg.id not in gym.registry:
@@ -203,7 +245,33 @@ def make_env(cfg: EnvConfig) -> gym.Env:
                 f"observed feature of {cfg.id}, or null"
             )
         env = ObservationScale(env, widths)
+    if cfg.rbf_centres is not None:
+        env = _radial_features(env, cfg)
     return env
+
+
+def _radial_features(env: gym.Env, cfg: EnvConfig) -> RadialFeatures:
+    """:class:`RadialFeatures` of ``cfg``, refused on an unbounded or too large box."""
+    space = env.observation_space
+    assert isinstance(space, Box) and cfg.rbf_centres is not None
+    finite = np.isfinite(space.low) & np.isfinite(space.high)
+    unbounded = [int(i) for i in np.flatnonzero(~finite)]
+    count = cfg.rbf_centres ** space.shape[0]
+    problem = None
+    if unbounded:
+        problem = (
+            f"observed features {unbounded} of {cfg.id} have no finite bounds to place centres "
+            "on (choose features with env.obs_indices)"
+        )
+    elif count > RadialFeatures.MAX_FEATURES:
+        problem = (
+            f"{cfg.rbf_centres}^{space.shape[0]} = {count} features, more than "
+            f"{RadialFeatures.MAX_FEATURES}; use fewer centres or features (env.obs_indices)"
+        )
+    if problem is not None:
+        env.close()
+        raise ConfigError(f"env.rbf_centres={cfg.rbf_centres}: {problem}")
+    return RadialFeatures(env, cfg.rbf_centres, cfg.rbf_width)
 
 
 def env_sizes(env: gym.Env) -> tuple[int, int]:

@@ -34,7 +34,7 @@ from gymnasium.envs.classic_control.mountain_car import MountainCarEnv
 from gymnasium.wrappers import OrderEnforcing, PassiveEnvChecker, TimeLimit
 from numba import njit
 
-from cdqn.envs import ObservationScale, ObservationSubset
+from cdqn.envs import ObservationScale, ObservationSubset, RadialFeatures
 
 
 class VectorStep(NamedTuple):
@@ -73,23 +73,34 @@ class VectorEnv(Protocol):
     def load_state_dict(self, i: int, state: dict[str, Any]) -> None: ...
 
 
-def _unwrap(
-    env: gym.Env,
-) -> tuple[gym.Env, np.ndarray | None, int | None, bool, ObservationScale | None]:
-    """(base env, observation indices, step cap, whether every wrapper is a known no-op,
-    the observation scaling)."""
-    indices, cap, known, scaling = None, None, True, None
+class _Wrappers(NamedTuple):
+    """What :func:`_unwrap` finds around a member's environment."""
+
+    base: gym.Env
+    indices: np.ndarray | None
+    cap: int | None
+    known: bool
+    """Every wrapper is one the twin reproduces or a no-op."""
+    scaling: ObservationScale | None
+    features: RadialFeatures | None
+
+
+def _unwrap(env: gym.Env) -> _Wrappers:
+    """The base environment and the wrappers a :class:`ClassicControlTwin` reproduces."""
+    indices, cap, known, scaling, features = None, None, True, None, None
     while isinstance(env, gym.Wrapper):
         if isinstance(env, ObservationSubset):
             indices = env.indices
         elif isinstance(env, ObservationScale):
             scaling = env
+        elif isinstance(env, RadialFeatures):
+            features = env
         elif isinstance(env, TimeLimit):
             cap = env._max_episode_steps
         elif not isinstance(env, OrderEnforcing | PassiveEnvChecker):
             known = False
         env = env.env
-    return env, indices, cap, known, scaling
+    return _Wrappers(env, indices, cap, known, scaling, features)
 
 
 _PHYSICS = {
@@ -132,7 +143,7 @@ class GymLoop:
     def checkpointable(self) -> bool:
         """Whether :meth:`state_dict` can capture the members mid-episode (the classic
         control environments, whose whole state is ``state`` and the step count)."""
-        return all(type(_unwrap(env)[0]) in ClassicControlTwin.KINDS for env in self.envs)
+        return all(type(_unwrap(env).base) in ClassicControlTwin.KINDS for env in self.envs)
 
     def state_dict(self, i: int) -> dict[str, Any]:
         """Member ``i``'s environment between two steps (classic control only)."""
@@ -195,10 +206,10 @@ class ClassicControlTwin:
 
     def __init__(self, envs: list[gym.Env]) -> None:
         self.envs = list(envs)
-        self.bases = [_unwrap(env)[0] for env in envs]
-        base, self.indices, cap, _, self.scaling = _unwrap(envs[0])
-        self.base = base
-        self.cap = cap
+        self.bases = [_unwrap(env).base for env in envs]
+        wrappers = _unwrap(envs[0])
+        base, self.indices, self.scaling = wrappers.base, wrappers.indices, wrappers.scaling
+        self.features, self.base, self.cap = wrappers.features, base, wrappers.cap
         self.kind = type(base)
         self.state = np.zeros((len(envs), {CartPoleEnv: 4, AcrobotEnv: 4}.get(self.kind, 2)))
         self.elapsed = np.zeros(len(envs), dtype=np.int64)
@@ -224,13 +235,14 @@ class ClassicControlTwin:
     @classmethod
     def supports(cls, envs: list[gym.Env]) -> bool:
         """True when every member is a default-parameter instance of a supported kind."""
-        bases = [_unwrap(env) for env in envs]
-        base = bases[0][0]
-        if not all(b[3] for b in bases) or type(base) not in cls.KINDS:
+        found = [_unwrap(env) for env in envs]
+        base = found[0].base
+        if not all(w.known for w in found) or type(base) not in cls.KINDS:
             return False
-        if any(type(b) is not type(base) or b.render_mode is not None for b, *_ in bases):
+        bases = [w.base for w in found]
+        if any(type(b) is not type(base) or b.render_mode is not None for b in bases):
             return False
-        if any(_physics(b) != _physics(base) for b, *_ in bases):
+        if any(_physics(b) != _physics(base) for b in bases):
             return False
         if isinstance(base, CartPoleEnv):
             return base.kinematics_integrator in ("euler", "semi-implicit") and not getattr(
@@ -280,6 +292,8 @@ class ClassicControlTwin:
             obs = obs[:, self.indices]
         if self.scaling is not None:  # as ObservationScale.observation does it
             obs = (obs - self.scaling.offset) * self.scaling.scale
+        if self.features is not None:
+            obs = self.features.features(obs)
         return VectorStep(obs, reward, terminated, truncated)
 
 

@@ -101,6 +101,28 @@ def test_double_dqn_takes_its_environments_settings_unless_overridden() -> None:
     assert compose_config(["controller=hinf_f", "env=acrobot"]).env.normalize  # the NTK box's
 
 
+def test_mountain_car_features_and_integrator_belong_to_the_controlled_agents() -> None:
+    """Mountain car's controlled agents see 6 x 6 radial basis features and keep x_e across
+    episodes (conf/env/mountaincar.yaml, conf/weights/mountaincar.yaml); Double DQN sees the
+    scaled observation; elsewhere x_e is reset as the research code does."""
+
+    def inputs_and_reset(*overrides: str) -> tuple[int, bool]:
+        conf: Config = OmegaConf.to_object(compose_config(list(overrides)))  # type: ignore[assignment]
+        env = make_env(conf.env)
+        size = env_sizes(env)[0]
+        env.close()
+        return size, conf.controller.reset_integrator
+
+    for ctrl in ("h2", "hinf", "hinf_f"):
+        assert inputs_and_reset("env=mountaincar", f"controller={ctrl}") == (36, False)
+        assert inputs_and_reset("env=acrobot", f"controller={ctrl}") == (6, True)
+        assert inputs_and_reset("env=cartpole", f"controller={ctrl}") == (4, True)
+    assert inputs_and_reset("env=mountaincar", "controller=ddqn")[0] == 2
+    assert inputs_and_reset("env=mountaincar", "controller=ddqn", "env.rbf_centres=4")[0] == 16
+    assert inputs_and_reset("env=mountaincar", "controller=h2", "env.rbf_centres=null",
+                            "controller.reset_integrator=true") == (2, True)  # fmt: skip
+
+
 def test_any_discrete_gymnasium_id_runs_through_env_id() -> None:
     cfg = compose_config(["env.id=CartPole-v0", "env.max_episode_steps=null"])
     env = make_env(OmegaConf.to_object(cfg).env)  # type: ignore[union-attr]

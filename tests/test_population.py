@@ -31,6 +31,9 @@ ENVS = {
     "CartPole obs[2:4]": EnvConfig(obs_indices=[2, 3]),
     "Acrobot-v1": EnvConfig(name="acrobot", id="Acrobot-v1", max_episode_steps=None),
     "MountainCar-v0": EnvConfig(name="mountaincar", id="MountainCar-v0"),
+    "MountainCar-v0 radial features": EnvConfig(
+        name="mountaincar", id="MountainCar-v0", normalize=True, rbf_centres=6, rbf_width=0.7
+    ),
 }
 
 
@@ -160,6 +163,7 @@ def _population(overrides: list[str], seeds: list[int]) -> list[Member]:
             ["weights.replay.repeats=3", "weights.replay.when=any", "weights.replay.last=4"],
         ),
         ("cartpole", "h2", ["weights.replay.repeats=2", "weights.replay.last=null"]),
+        ("cartpole", "hinf", ["controller.reset_integrator=false"]),
         (
             "mountaincar",
             "hinf",

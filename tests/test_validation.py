@@ -56,6 +56,11 @@ BAD = [
     (["controller.discount=0.9"], ["controller.discount=0.9", "Double DQN", "train.discount"]),
     (["resume="], ["resume=''", "give the MLflow run id", "resume=<run_id>"]),
     (["env.id=Taxi-v3"], ["env.id='Taxi-v3'", "not a registered", "did you mean Taxi-v4?"]),
+    (["env.rbf_centres=1"], ["env.rbf_centres=1", "must be >= 2"]),
+    (["env=mountaincar", "env.rbf_width=0"], ["env.rbf_width=0", "> 0"]),
+    (["env.rbf_centres=6"], ["env.rbf_centres=6", "observed features [1, 3]", "no finite bounds"]),
+    (["env=acrobot", "env.rbf_centres=5"], ["env.rbf_centres=5", "5^6 = 15625", "4096"]),
+    (["env=acrobot", "env.normalize_scale=[1,1]"], ["env.normalize_scale=[1.0, 1.0]", "6 half"]),
 ]
 
 

@@ -7,8 +7,9 @@ the static law ``u = −k1 Q1 − k2 Q2 + k3 x_e`` (paper Sec. 4.1, 4.3) the TD 
            = (1 + k_1)\\Big(\\frac{r}{1 + k_1} + \\gamma_{\\rm eff} Q_2 - Q_1\\Big) + k_3 x_e,
            \\qquad \\gamma_{\\rm eff} = \\frac{\\gamma - k_2}{1 + k_1},
 
-so learning settles where ``Q1 = r/(1+k1) + γ_eff Q2`` (``x_e`` is reset every episode and
-integrates at ``Δt = α``): a Bellman equation with the *effective discount* ``γ_eff``,
+so learning settles where ``Q1 = r/(1+k1) + γ_eff Q2`` (``x_e`` integrates the TD error at
+``Δt = α``; reset every episode, or kept across episodes as a slowly adapting bias,
+``controller.reset_integrator``): a Bellman equation with the *effective discount* ``γ_eff``,
 while ``1 + k1`` (the *step scale*) multiplies every SGD step, ``α(1 + k1)Θ1`` being the
 step's gain on Q1.  A robust design that leaves these free trades them for robustness: on
 the gradient-flow plant the worst-case H∞ objective is smallest for ``γ_eff → 0`` (the
