@@ -184,7 +184,7 @@ class RadialFeatures(gym.ObservationWrapper):
     between them: on raw or scaled observations every pair of states is similar to it, so one
     online step moves Q over the whole state space alike.  On ``φ`` two states far apart share
     no features, and a step mostly moves Q near the state it learns from (docs/learning.md,
-    "Radial basis features")."""
+    §6: Mountain car's controlled agents learn with them)."""
 
     MAX_FEATURES = 4096
     """The largest n^d accepted (the network's input size)."""
@@ -212,7 +212,8 @@ class RadialFeatures(gym.ObservationWrapper):
 
 
 def make_env(cfg: EnvConfig) -> gym.Env:
-    """Build the environment of ``cfg``: gymnasium id, episode cap and feature subset."""
+    """Build the environment of ``cfg``: gymnasium id, episode cap, feature subset, scaling
+    (``env.normalize``) and radial basis features (``env.rbf_centres``), in that order."""
     if cfg.id not in gym.registry:
         raise _unknown_id(cfg.id)
     kwargs = {} if cfg.max_episode_steps is None else {"max_episode_steps": cfg.max_episode_steps}
