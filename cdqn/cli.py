@@ -80,41 +80,22 @@ def check_train(cfg: DictConfig) -> None:
     adopt_env_id(cfg)  # env.id=<id>: that environment's cap (cdqn.envs)
     conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
     validate(conf)
-    env = conf.env
-    _check_env(
-        env.id,
-        env.max_episode_steps,
-        tuple(env.obs_indices or ()) or None,
-        env.normalize,
-        tuple(env.normalize_scale) if env.normalize_scale is not None else None,
-        env.rbf_centres,
-        env.rbf_width,
-    )
+    _check_env(_env_key(conf.env))
+
+
+def _env_key(env: EnvConfig) -> tuple:
+    """``env`` as a hashable key of :func:`_check_env` (lists as tuples)."""
+    return tuple((k, tuple(v) if isinstance(v, list) else v) for k, v in vars(env).items())
 
 
 @functools.lru_cache(maxsize=32)
-def _check_env(
-    env_id: str,
-    max_steps: int | None,
-    obs_indices: tuple[int, ...] | None,
-    normalize: bool,
-    normalize_scale: tuple[float, ...] | None,
-    rbf_centres: int | None,
-    rbf_width: float,
-) -> None:
-    """Build the environment once as the run would (ids, features, scale, radial features)."""
+def _check_env(key: tuple) -> None:
+    """Build the environment once as the run would (id, cap, features, scale, radial
+    features); a multirun checks each distinct environment once."""
     from cdqn.envs import make_env  # noqa: PLC0415 (gymnasium only once the rest passed)
 
-    cfg = EnvConfig(
-        id=env_id,
-        max_episode_steps=max_steps,
-        obs_indices=list(obs_indices) if obs_indices is not None else None,
-        normalize=normalize,
-        normalize_scale=list(normalize_scale) if normalize_scale is not None else None,
-        rbf_centres=rbf_centres,
-        rbf_width=rbf_width,
-    )
-    make_env(cfg).close()
+    fields = {k: list(v) if isinstance(v, tuple) else v for k, v in key}
+    make_env(EnvConfig(**fields)).close()
 
 
 def check_evaluate(cfg: DictConfig) -> None:

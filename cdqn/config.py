@@ -201,7 +201,7 @@ class WeightsConfig:
     """Learning target of the synthesised designs (γ_eff and 1 + k1 ranges)."""
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     """Episodic replay of the controlled agents."""
-    reset_integrator: IntegratorReset = field(default_factory=lambda: IntegratorReset())
+    reset_integrator: IntegratorReset = field(default_factory=IntegratorReset)
     """Whether each controlled agent resets the integrator x_e at each episode start on this
     environment (taken by controller.reset_integrator; docs/learning.md)."""
     ddqn: DDQNSettings = field(default_factory=DDQNSettings)

@@ -207,9 +207,10 @@ class ClassicControlTwin:
     def __init__(self, envs: list[gym.Env]) -> None:
         self.envs = list(envs)
         self.bases = [_unwrap(env).base for env in envs]
-        wrappers = _unwrap(envs[0])
-        base, self.indices, self.scaling = wrappers.base, wrappers.indices, wrappers.scaling
-        self.features, self.base, self.cap = wrappers.features, base, wrappers.cap
+        w = _unwrap(envs[0])
+        self.base, self.indices, self.cap = w.base, w.indices, w.cap
+        self.scaling, self.features = w.scaling, w.features
+        base = self.base
         self.kind = type(base)
         self.state = np.zeros((len(envs), {CartPoleEnv: 4, AcrobotEnv: 4}.get(self.kind, 2)))
         self.elapsed = np.zeros(len(envs), dtype=np.int64)
@@ -290,8 +291,8 @@ class ClassicControlTwin:
         _count_steps(self.elapsed, -1 if self.cap is None else self.cap, truncated)
         if self.indices is not None:
             obs = obs[:, self.indices]
-        if self.scaling is not None:  # as ObservationScale.observation does it
-            obs = (obs - self.scaling.offset) * self.scaling.scale
+        if self.scaling is not None:  # the members' own wrappers, on all rows at once
+            obs = self.scaling.observation(obs)
         if self.features is not None:
             obs = self.features.features(obs)
         return VectorStep(obs, reward, terminated, truncated)
