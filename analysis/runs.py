@@ -70,6 +70,7 @@ SETTINGS = (
     "train.lr",
     "train.discount",
     "train.eps_dec",
+    "train.eps_schedule",
     "train.bootstrap_terminal",
     "env.max_episode_steps",
     "env.obs_indices",

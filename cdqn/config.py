@@ -23,6 +23,8 @@ class ConfigError(ValueError):
 
 REPLAY_WHEN = ("terminated", "truncated", "any")
 """Episodes that qualify for episodic replay (:class:`ReplayConfig`)."""
+EPS_SCHEDULES = ("random_action", "step")
+"""What lowers ε by eps_dec (:class:`cdqn.agents.base.EpsilonGreedy`)."""
 EXPERIMENT_TAGS = {"mlflow.experimentKind": "custom_model_development"}
 """Tags of the MLflow experiments cdqn creates: the UI then opens them as model-training
 experiments, on the runs table (MLflow 3 opens an untagged new experiment as a GenAI one)."""
@@ -55,8 +57,11 @@ class EnvConfig:
     solve_threshold: float | None = 195.0
     """Moving-average return (100 episodes) at which the task counts as solved."""
     eps_dec: float = 1e-4
-    """This environment's decrease of ε after each random action, taken by train.eps_dec
-    (research code: 1e-4; Acrobot explores longer, docs/learning.md)."""
+    """This environment's decrease of ε, taken by train.eps_dec (research code: 1e-4 per
+    random action; Acrobot: 5e-6 per step, docs/learning.md)."""
+    eps_schedule: str = "random_action"
+    """What lowers ε by eps_dec, taken by train.eps_schedule: ``random_action`` (research
+    code) or ``step`` (every step: linear in steps)."""
 
 
 @dataclass
@@ -309,7 +314,10 @@ class TrainConfig:
     eps_end: float = 0.01
     """ε stops decreasing once below this value."""
     eps_dec: float = 1e-4
-    """Decrease of ε after each random action (default: the environment's env.eps_dec)."""
+    """Decrease of ε (default: the environment's env.eps_dec)."""
+    eps_schedule: str = "random_action"
+    """ε falls by eps_dec after each ``random_action`` (research code) or each ``step``
+    (linear in steps), floored at eps_end (default: the environment's env.eps_schedule)."""
     bootstrap_terminal: bool = False
     """Bootstrap from max Q(s') at terminal steps too (the research code's behaviour); by
     default only truncated steps (the time limit) bootstrap, terminal ones do not."""
@@ -455,6 +463,11 @@ def validate(cfg: Config) -> None:
         ),
         (0 <= cfg.train.eps_end <= 1, f"train.eps_end={cfg.train.eps_end}: ε must lie in [0, 1]"),
         (0 <= cfg.train.eps_dec <= 1, f"train.eps_dec={cfg.train.eps_dec}: must lie in [0, 1]"),
+        (
+            cfg.train.eps_schedule in EPS_SCHEDULES,
+            f"train.eps_schedule={cfg.train.eps_schedule!r} (env.eps_schedule unless set): "
+            f"allowed {', '.join(EPS_SCHEDULES)}",
+        ),
         (cfg.train.q_limit > 0, f"train.q_limit={cfg.train.q_limit}: must be > 0"),
         (
             cfg.train.checkpoint_every >= 0,

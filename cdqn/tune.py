@@ -996,7 +996,8 @@ def write_preset(cfg: DictConfig, name: str, folder: Path, best: Any, conf: Tune
         f"train.lr={c.train.lr:g} train.discount={c.train.discount:g}",
         f"# Train with: python -m cdqn.train env.id={c.env.id} "
         f"env.max_episode_steps={c.env.max_episode_steps} controller={c.controller.name} "
-        f"network.width={c.network.width} train.eps_dec={c.train.eps_dec:g} weights={name} "
+        f"network.width={c.network.width} train.eps_dec={c.train.eps_dec:g} "
+        f"train.eps_schedule={c.train.eps_schedule} weights={name} "
         f"hydra.searchpath=[file://{folder.resolve()}]",
         f"# Specification: {json.dumps(best.params)}",
     ]

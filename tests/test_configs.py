@@ -67,15 +67,17 @@ def test_weights_follow_the_env_choice() -> None:
 
 
 def test_exploration_schedule_follows_the_env_unless_train_sets_it() -> None:
-    def eps_dec(*overrides: str) -> float:
+    def schedule(*overrides: str) -> tuple[float, str]:
         conf: Config = OmegaConf.to_object(compose_config(list(overrides)))  # type: ignore[assignment]
-        return conf.train.eps_dec
+        return conf.train.eps_dec, conf.train.eps_schedule
 
-    assert eps_dec("env=cartpole") == eps_dec("env=mountaincar") == 1e-4  # research code
-    assert eps_dec("env=acrobot") == 1e-5
-    assert eps_dec("env=acrobot", "train.eps_dec=3e-4") == 3e-4
-    assert eps_dec("env.id=LunarLander-v3") == 1e-4
-    assert eps_dec("env=cartpole", "env.eps_dec=2e-5") == 2e-5
+    research = (1e-4, "random_action")
+    assert schedule("env=cartpole") == schedule("env=mountaincar") == research
+    assert schedule("env=cartpole_pole") == schedule("env.id=LunarLander-v3") == research
+    assert schedule("env=acrobot") == (5e-6, "step")  # docs/learning.md, section 5
+    assert schedule("env=acrobot", "train.eps_dec=3e-4") == (3e-4, "step")
+    assert schedule("env=acrobot", "train.eps_schedule=random_action") == (5e-6, "random_action")
+    assert schedule("env=cartpole", "env.eps_dec=2e-5", "env.eps_schedule=step") == (2e-5, "step")
 
 
 def test_double_dqn_takes_its_environments_settings_unless_overridden() -> None:

@@ -9,7 +9,7 @@ from mlflow.tracking import MlflowClient
 from omegaconf import OmegaConf
 
 from cdqn.agents.base import EpsilonGreedy
-from cdqn.config import EnvConfig, TrainConfig
+from cdqn.config import EPS_SCHEDULES, EnvConfig, TrainConfig
 from cdqn.control.factory import make_controller
 from cdqn.envs import make_env
 from cdqn.training.build import build, build_population, member_seeds
@@ -164,6 +164,7 @@ def _population(overrides: list[str], seeds: list[int]) -> list[Member]:
         ),
         ("cartpole", "h2", ["weights.replay.repeats=2", "weights.replay.last=null"]),
         ("cartpole", "hinf", ["controller.reset_integrator=false"]),
+        ("cartpole", "hinf_f", ["train.eps_schedule=step"]),
         (
             "mountaincar",
             "hinf",
@@ -204,10 +205,11 @@ def test_members_stepping_their_own_environments_equal_single_runs(
 
 
 @pytest.mark.parametrize("n_actions", [2, 3])
-def test_exploration_drawn_ahead_equals_epsilon_greedy(n_actions: int) -> None:
+@pytest.mark.parametrize("schedule", EPS_SCHEDULES)
+def test_exploration_drawn_ahead_equals_epsilon_greedy(n_actions: int, schedule: str) -> None:
     """Decisions drawn ahead in blocks (populations) are the decisions, and leave the
     generator in the state, of one ``EpsilonGreedy.explore`` call per step (single runs)."""
-    cfg = TrainConfig(eps_start=1.0, eps_end=0.05, eps_dec=2e-3)
+    cfg = TrainConfig(eps_start=1.0, eps_end=0.05, eps_dec=2e-3, eps_schedule=schedule)
     steps = 2000
     explorer = EpsilonGreedy(cfg, n_actions, np.random.default_rng(7))
     expected = [explorer.explore() for _ in range(steps)]

@@ -47,30 +47,37 @@ class Agent(Protocol):
 
 
 class EpsilonGreedy:
-    """ε-greedy as in the research code: start at ``eps_start``; every random action lowers
-    ε by ``eps_dec`` while ε ≥ ``eps_end``."""
+    """ε-greedy: start at ``eps_start`` and lower ε by ``eps_dec``, floored at ``eps_end``,
+    after each random action (``eps_schedule=random_action``, the research code: ε falls
+    while it is ≥ ``eps_end``, so as the agent explores) or after each step
+    (``eps_schedule=step``: ε_t = max(eps_end, eps_start − eps_dec·t), linear in steps as
+    in DQN).  Step ``t`` acts at random with probability ε_t."""
 
     def __init__(self, cfg: TrainConfig, n_actions: int, rng: np.random.Generator) -> None:
         self.epsilon = cfg.eps_start
         self.eps_end = cfg.eps_end
         self.eps_dec = cfg.eps_dec
+        self.per_step = cfg.eps_schedule == "step"
         self.n_actions = n_actions
         self.rng = rng
 
     def explore(self) -> int | None:
         """A random action with probability ε (and decay ε), else None."""
-        if self.rng.random() > self.epsilon:
+        epsilon = self.epsilon
+        if self.per_step and epsilon > self.eps_end:
+            self.epsilon = max(self.eps_end, epsilon - self.eps_dec)
+        if self.rng.random() > epsilon:
             return None
-        if self.epsilon >= self.eps_end:
-            self.epsilon -= self.eps_dec
+        if not self.per_step and epsilon >= self.eps_end:
+            self.epsilon = epsilon - self.eps_dec
         return int(self.rng.integers(self.n_actions))
 
 
 @njit(cache=True)
-def explore_ahead(rng, epsilon, eps_end, eps_dec, n_actions, out):  # noqa: ANN001, ANN201
+def explore_ahead(rng, epsilon, eps_end, eps_dec, per_step, n_actions, out):  # noqa: ANN001, ANN201
     """The next ``len(out)`` decisions of :meth:`EpsilonGreedy.explore` from ``rng`` and
-    ``epsilon``: ``out[i]`` is the random action of step ``i`` or −1 (greedy).  Returns ε
-    after them.
+    ``epsilon`` (``per_step``: ``eps_schedule=step``): ``out[i]`` is the random action of
+    step ``i`` or −1 (greedy).  Returns ε after them.
 
     Exploration depends on nothing but its generator and ε, so its decisions can be drawn
     ahead.  numba's ``Generator.random``/``integers`` advance the NumPy generator's own
@@ -78,10 +85,13 @@ def explore_ahead(rng, epsilon, eps_end, eps_dec, n_actions, out):  # noqa: ANN0
     them, are those of ``len(out)`` calls of ``explore`` (``tests/test_population.py``).
     """
     for i in range(out.shape[0]):
-        if rng.random() > epsilon:
+        eps = epsilon
+        if per_step and epsilon > eps_end:
+            epsilon = max(eps_end, epsilon - eps_dec)
+        if rng.random() > eps:
             out[i] = -1
             continue
-        if epsilon >= eps_end:
+        if not per_step and epsilon >= eps_end:
             epsilon -= eps_dec
         out[i] = rng.integers(0, n_actions)
     return epsilon

@@ -140,6 +140,7 @@ class ExplorationPlan:
         self.rngs = list(rngs)
         self.epsilon = np.full(len(rngs), float(cfg.eps_start))
         self.eps_end, self.eps_dec = float(cfg.eps_end), float(cfg.eps_dec)
+        self.per_step = cfg.eps_schedule == "step"
         self.n_actions = n_actions
         self.plan = np.empty((block, len(rngs)), dtype=np.int64)
         self.pos = block
@@ -149,8 +150,8 @@ class ExplorationPlan:
         if self.pos == len(self.plan):
             for k, rng in enumerate(self.rngs):
                 self.epsilon[k] = explore_ahead(
-                    rng, self.epsilon[k], self.eps_end, self.eps_dec, self.n_actions,
-                    self.plan[:, k],
+                    rng, self.epsilon[k], self.eps_end, self.eps_dec, self.per_step,
+                    self.n_actions, self.plan[:, k],
                 )  # fmt: skip
             self.pos = 0
         self.pos += 1
