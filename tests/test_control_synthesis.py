@@ -92,6 +92,11 @@ def test_dynamic_design_passes_certificate_and_is_cached(cache: Path) -> None:
         tuple(record["nominal"]),
     )
     assert certify(K, box, box.sample(50, 1), (11, 11), 1.0, lr=inputs.lr).passed
+    # and over the Θ1 that training reaches: the kernel grows as the weights move, on
+    # Mountain car from the box's [35, 55] to ~3000 (docs/synthesis.md, "The kernel during
+    # training")
+    grown = NTKBox((box.theta1[0], 3500.0), box.ratio, box.nominal)
+    assert certify(K, grown, grown.sample(50, 1), (25, 11), 1.0, lr=inputs.lr).passed
 
 
 def test_training_uses_the_synthesised_controller(cache: Path) -> None:
