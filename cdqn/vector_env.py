@@ -206,15 +206,15 @@ class ClassicControlTwin:
 
     def __init__(self, envs: list[gym.Env]) -> None:
         self.envs = list(envs)
-        self.bases = [_unwrap(env).base for env in envs]
-        w = _unwrap(envs[0])
+        found = [_unwrap(env) for env in envs]
+        self.bases = [w.base for w in found]
+        w = found[0]
         self.base, self.indices, self.cap = w.base, w.indices, w.cap
         self.scaling, self.features = w.scaling, w.features
-        base = self.base
-        self.kind = type(base)
+        self.kind = type(self.base)
         self.state = np.zeros((len(envs), {CartPoleEnv: 4, AcrobotEnv: 4}.get(self.kind, 2)))
         self.elapsed = np.zeros(len(envs), dtype=np.int64)
-        e = base
+        e = self.base
         if self.kind is CartPoleEnv:
             self.params = np.array([
                 e.force_mag, e.gravity, e.masspole, e.total_mass, e.length, e.polemass_length,
