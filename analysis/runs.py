@@ -51,8 +51,12 @@ EPISODE_METRICS = (
     "u_abs_mean",
     "theta1_mean",
     "unstable_fraction",
+    "theta1_outside_box",
+    "ratio_below_box",
+    "ratio_above_box",
 )
-"""Per-episode metrics a cdqn run logs (MLflow ``step`` = episode index, from 0)."""
+"""Per-episode metrics a cdqn run logs (MLflow ``step`` = episode index, from 0);
+the ``*_box`` shares only the agents with an NTK box (NaN for the others)."""
 
 TAG_COLUMNS = ("env", "env_id", "controller", "seed", "git_commit", "design_source")
 """Tags every cdqn run carries; they become columns of :meth:`RunStore.runs`."""

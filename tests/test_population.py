@@ -252,6 +252,9 @@ def test_population_member_is_recorded_as_its_single_run(tracking_uri: str) -> N
                 check_exact=True,
             )
         assert _metrics(client, single.run_id) == _metrics(client, member.run_id)
+        assert {"theta1_outside_box", "ratio_below_box", "ratio_above_box"} <= set(
+            _metrics(client, member.run_id)
+        )
         ra, rb = client.get_run(single.run_id).data, client.get_run(member.run_id).data
         assert ra.params == rb.params
         tags_a = {k: v for k, v in ra.tags.items() if not k.startswith("mlflow.")}

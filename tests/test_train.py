@@ -3,6 +3,7 @@ same config and seed give the same returns."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -28,6 +29,7 @@ METRICS = {
     "theta1_mean",
     "unstable_fraction",
 }
+BOX_METRICS = ("theta1_outside_box", "ratio_below_box", "ratio_above_box")
 ENVS = ("cartpole", "acrobot", "mountaincar")
 CONTROLLERS = ("h2", "hinf", "hinf_f", "ddqn", "none")
 
@@ -83,8 +85,24 @@ def test_run_leaves_a_complete_mlflow_run(
     assert net(obs).shape == (net.spec.n_actions,)
     if controller in ("none", "ddqn"):
         assert (steps["u"] == 0).all()
+        assert not set(BOX_METRICS) & set(info.data.metrics)
     else:
         assert (steps["u"] != 0).any()
+        _assert_box_share(client, result.run_id, steps)
+
+
+def _assert_box_share(client: MlflowClient, run_id: str, steps: pd.DataFrame) -> None:
+    """The box metrics are, per episode, the shares of steps whose Θ1 lies outside, and whose
+    Θ2/Θ1 lies below and above, the box recorded in the design (``design/controller.json``)."""
+    design = json.loads(
+        Path(client.download_artifacts(run_id, "design/controller.json")).read_text()
+    )
+    (t1_lo, t1_hi), (r_lo, r_hi) = design["theta_bounds"]["theta1"], design["theta_bounds"]["ratio"]
+    t1, ratio = steps["theta1"], steps["theta2"] / steps["theta1"]
+    outside = (~t1.between(t1_lo, t1_hi), ratio < r_lo, ratio > r_hi)
+    for key, mask in zip(BOX_METRICS, outside, strict=True):
+        expected = mask.groupby(steps["episode"]).mean().tolist()
+        assert _history(client, run_id, key) == pytest.approx(expected)
 
 
 def test_same_seed_same_returns(tracking_uri: str) -> None:

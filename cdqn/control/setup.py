@@ -22,6 +22,18 @@ class ControllerSetup:
     artifacts: Path | None = None
     """A folder of further design artefacts (plots, tables), logged under ``design/``."""
 
+    def box(self) -> tuple[tuple[float, float], tuple[float, float]] | None:
+        """The NTK box the design covers, ``((Θ1 lo, Θ1 hi), (Θ2/Θ1 lo, hi))``, from the design
+        record's ``theta_bounds``; ``None`` for a design without one (the research code's
+        values, no controller, Double DQN)."""
+        tb = self.design.get("theta_bounds")
+        if not tb:
+            return None
+        return (float(tb["theta1"][0]), float(tb["theta1"][1])), (
+            float(tb["ratio"][0]),
+            float(tb["ratio"][1]),
+        )
+
     def tags(self) -> dict[str, str]:
         """What the design keeps, as run tags: ``design_gamma_eff`` and ``design_step_scale``
         (γ_eff and 1 + k1; DC values for ``hinf``; ``lo..hi`` over the box for ``h2``),

@@ -24,6 +24,10 @@ from cdqn.training.signals import SignalBuffer
 RATE_WINDOW = 20
 """Episodes over which the progress bar's steps/s is measured (wall time, everything in)."""
 
+Box = tuple[tuple[float, float], tuple[float, float]]
+"""A design's NTK box as ``((Θ1 lower, Θ1 upper), (ρ lower, ρ upper))`` with ρ = Θ2/Θ1
+(:class:`cdqn.control.box.NTKBox`)."""
+
 
 class DivergenceError(RuntimeError):
     """Learning diverged: a non-finite or too large value in the loss, Q or controller."""
@@ -48,9 +52,18 @@ class EpisodeStats:
     """Share of the episode's steps with Θ1 < γ Θ2 (the nominal model unstable)."""
     replay_updates: int = 0
     """Updates of episodic replay after the episode (:mod:`cdqn.agents.episodic_replay`)."""
+    theta1_outside_box: float | None = None
+    """Share of the episode's steps with Θ1 outside the Θ1 range of the NTK box the design
+    was certified on; ``None`` (not logged) for an agent without a box."""
+    ratio_below_box: float | None = None
+    """Share of the episode's steps with Θ2/Θ1 below the box's ratio range (those whose next
+    greedy action differs from ``a`` among them); ``None`` (not logged) without a box."""
+    ratio_above_box: float | None = None
+    """Share of the episode's steps with Θ2/Θ1 above the box's ratio range, the side the
+    loop's stability bound limits; ``None`` (not logged) without a box."""
 
     def metrics(self) -> dict[str, float]:
-        return {k: float(v) for k, v in vars(self).items() if k != "episode"}
+        return {k: float(v) for k, v in vars(self).items() if k != "episode" and v is not None}
 
 
 @dataclass
@@ -63,11 +76,18 @@ class TrainState:
 
 
 def episode_stats(
-    episode: int, rows: np.ndarray, returns: list[float], discount: float, replay_updates: int = 0
+    episode: int,
+    rows: np.ndarray,
+    returns: list[float],
+    discount: float,
+    replay_updates: int = 0,
+    box: Box | None = None,
 ) -> EpisodeStats:
     """Summarise one episode's rows of the signal table (columns of
-    :mod:`cdqn.training.signals`)."""
+    :mod:`cdqn.training.signals`); ``box``: the design's NTK box, for
+    ``theta1_outside_box``, ``ratio_below_box`` and ``ratio_above_box``."""
     loss_mean, u_abs_mean, theta1_mean, unstable = _episode_means(rows, discount)
+    outside = (None,) * 3 if box is None else _outside_shares(rows, *box[0], *box[1])
     return EpisodeStats(
         episode=episode,
         episode_return=returns[-1],
@@ -78,6 +98,9 @@ def episode_stats(
         theta1_mean=theta1_mean,
         unstable_fraction=unstable,
         replay_updates=replay_updates,
+        theta1_outside_box=outside[0],
+        ratio_below_box=outside[1],
+        ratio_above_box=outside[2],
     )
 
 
@@ -99,6 +122,30 @@ def _episode_means(rows, discount):  # noqa: ANN001, ANN202
     return loss / n_loss if n_loss else math.nan, u / n, theta1 / n, unstable / n
 
 
+@njit(cache=True)
+def _outside_shares(rows, theta1_lo, theta1_hi, ratio_lo, ratio_hi):  # noqa: ANN001, ANN202
+    """Shares of the rows whose kernel leaves the box (paper Sec. 3, "Boundedness of the
+    parametric uncertainty"): Θ1 ∉ [Θ1_lo, Θ1_hi], ρ = Θ2/Θ1 < ρ_lo and ρ > ρ_hi.
+
+    The box is measured on the initial network and the design certified over it
+    (docs/synthesis.md).  Θ1 grows as the weights learn.  ρ lies below the box on the
+    transitions whose next greedy action differs from ``a`` (Θ2 ≈ 0 at initialisation, left
+    out of the measured ratio range): Q2 moves less there, and a static loop is further from
+    its bound ``(1 + k1)Θ1 > (γ − k2)Θ2`` (:mod:`cdqn.control.plant`).  ρ above the box is
+    the side that bound limits."""
+    theta1_out = below = above = 0
+    for r in range(rows.shape[0]):
+        t1, t2 = rows[r, 7], rows[r, 8]
+        if not theta1_lo <= t1 <= theta1_hi:
+            theta1_out += 1
+        if t2 < ratio_lo * t1:
+            below += 1
+        elif t2 > ratio_hi * t1:
+            above += 1
+    n = rows.shape[0]
+    return (theta1_out / n, below / n, above / n) if n else (math.nan, math.nan, math.nan)
+
+
 def train(
     env: gym.Env,
     agent: Agent,
@@ -114,6 +161,7 @@ def train(
     desc: str = "",
     should_stop: Callable[[], bool] | None = None,
     replay: ReplayConfig | None = None,
+    box: Box | None = None,
 ) -> TrainState:
     """Run ``episodes`` episodes (from ``state.episode`` on) and return the final state.
 
@@ -124,7 +172,9 @@ def train(
     first finite one means "no update yet" (Double DQN before ``learning_starts``).
     ``should_stop`` is asked after each episode; when it answers True the loop returns
     early, at an episode boundary.  ``replay``: episodic replay of the controlled agents
-    (:mod:`cdqn.agents.episodic_replay`) after each qualifying episode.
+    (:mod:`cdqn.agents.episodic_replay`) after each qualifying episode.  ``box``: the
+    design's NTK box, for the per-episode ``theta1_outside_box``, ``ratio_below_box`` and
+    ``ratio_above_box``.
     """
     state = state or TrainState()
     redirect = logging_redirect_tqdm(_console_loggers()) if progress else contextlib.nullcontext()
@@ -182,7 +232,9 @@ def train(
             length = signals.n - start_row
             state.total_steps += length
             state.episode += 1
-            stats = episode_stats(ep, signals.rows(start_row), state.returns, discount, replayed)
+            stats = episode_stats(
+                ep, signals.rows(start_row), state.returns, discount, replayed, box
+            )
             if on_episode is not None:
                 on_episode(stats, state)
             recent.append((state.total_steps, time.perf_counter()))

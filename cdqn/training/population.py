@@ -56,6 +56,7 @@ from cdqn.training.build import build_population, member_config, member_seeds
 from cdqn.training.checkpoint import ROOT as CHECKPOINT_ROOT
 from cdqn.training.checkpoint import CheckpointStore, load_local, local_path, save_local
 from cdqn.training.interrupt import GracefulStop
+from cdqn.training.loop import Box
 from cdqn.training.population_checkpoint import (
     CLOSING_FILE,
     MemberCheckpoint,
@@ -145,7 +146,15 @@ def start_population(
             env.close()
         raise
     signum = train_members(
-        conf, agent, venv, members, results, progress, observe=observe, should_stop=should_stop
+        conf,
+        agent,
+        venv,
+        members,
+        results,
+        progress,
+        observe=observe,
+        should_stop=should_stop,
+        box=setup.box(),
     )
     return PopulationResult([results[s] for s in sorted(results)], signum)
 
@@ -161,12 +170,15 @@ def train_members(
     stores: dict[int, CheckpointStore] | None = None,
     observe: Callable[[Member], None] | None = None,
     should_stop: Callable[[], bool] | None = None,
+    box: Box | None = None,
 ) -> int | None:
     """Train ``members`` (their runs open) to the end, with checkpoints (every
     ``train.checkpoint_every`` episodes of the slowest member and on SIGINT/SIGTERM, see
     :mod:`cdqn.training.population_checkpoint`); put each member's ``RunResult`` into
     ``results`` and close its run.  ``sequence``: number of the last checkpoint (a resumed
-    population continues the count).  Returns the signal that stopped training, if any.
+    population continues the count); ``box``: the design's NTK box, for the per-episode
+    ``theta1_outside_box``, ``ratio_below_box`` and ``ratio_above_box``.  Returns the signal
+    that stopped training, if any.
 
     A tracking store that does not answer for ``tracking.retry_s`` stops the population as
     a signal does, at the end of the population step: every member still training is
@@ -301,6 +313,7 @@ def train_members(
                 on_checkpoint=on_checkpoint if venv.checkpointable else None,
                 checkpoint_every=conf.train.checkpoint_every,
                 replay=conf.weights.replay if conf.controller.name != "ddqn" else None,
+                box=box,
             )
         except BaseException as err:  # close the members' runs that are still open
             stop.closing()
@@ -474,7 +487,9 @@ def resume_population(uri: str, tracking: Any, runs: list, progress: bool) -> Po
         for env in venv.envs:
             env.close()
         raise
-    signum = train_members(conf, agent, venv, members, results, progress, sequence, stores)
+    signum = train_members(
+        conf, agent, venv, members, results, progress, sequence, stores, box=setup.box()
+    )
     _forget_local(folder, [r.info.run_id for r in runs], results)
     return PopulationResult([results[s] for s in sorted(results)], signum)
 

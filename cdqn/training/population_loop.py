@@ -21,7 +21,7 @@ from tqdm.auto import tqdm
 from cdqn.agents.base import StepRecord
 from cdqn.agents.episodic_replay import PopulationTail, Transitions, qualifies
 from cdqn.config import ReplayConfig
-from cdqn.training.loop import DivergenceError, _diagnose, episode_stats
+from cdqn.training.loop import Box, DivergenceError, _diagnose, episode_stats
 from cdqn.training.population_step import CHECK, DONE, ControlledPopulation
 from cdqn.training.signals import COLUMNS, SignalBuffer
 from cdqn.vector_env import VectorEnv
@@ -106,6 +106,7 @@ def train_population(
     | None = None,
     checkpoint_every: int = 0,
     replay: ReplayConfig | None = None,
+    box: Box | None = None,
 ) -> None:
     """The training loop of :func:`cdqn.training.loop.train` for all members at once.
 
@@ -113,7 +114,9 @@ def train_population(
     finishes its ``episodes`` or diverges leaves the batch (``on_member_end`` is called with
     the member, the agent and its row, before the row is dropped).  ``max_steps`` (for the
     benchmark) ends the loop after that many population steps.  ``replay``: episodic replay
-    after each member's qualifying episode, as :func:`cdqn.training.loop.train` does it.
+    after each member's qualifying episode, as :func:`cdqn.training.loop.train` does it;
+    ``box``: the design's NTK box, for ``theta1_outside_box``, ``ratio_below_box``
+    and ``ratio_above_box``.
 
     ``on_checkpoint(items, obs, t, ret)`` (items: ``(row, member)`` pairs) is called between
     two steps, with every member's signal rows flushed: each time the slowest member has
@@ -215,7 +218,7 @@ def train_population(
                     m.returns.append(float(ret[j]))
                     start = m.signals.n - int(t[j])
                     stats = episode_stats(
-                        m.episode, m.signals.rows(start), m.returns, discount, replayed
+                        m.episode, m.signals.rows(start), m.returns, discount, replayed, box
                     )
                     m.episode += 1
                     if on_episode is not None:

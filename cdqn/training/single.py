@@ -220,6 +220,7 @@ def _train(
                 desc=f"{conf.env.name}/{conf.controller.name}/s{conf.seed}",
                 should_stop=stop.requested,
                 replay=conf.weights.replay if conf.controller.name != "ddqn" else None,
+                box=job.setup.box(),
             )
             if state.episode < episodes:  # a signal stopped training at an episode boundary
                 status = "KILLED"
