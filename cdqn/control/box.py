@@ -19,6 +19,10 @@ import numpy as np
 
 from cdqn.control.errors import DesignError
 
+Box = tuple[tuple[float, float], tuple[float, float]]
+"""An NTK box as plain bounds ``((Θ1 lower, Θ1 upper), (ρ lower, ρ upper))``, ρ = Θ2/Θ1:
+what a design record keeps (``theta_bounds``) and what compiled training code reads."""
+
 
 @dataclass(frozen=True)
 class NTKBox:

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from cdqn.control.box import Box
 from cdqn.control.runtime import RuntimeController
 
 
@@ -22,7 +23,7 @@ class ControllerSetup:
     artifacts: Path | None = None
     """A folder of further design artefacts (plots, tables), logged under ``design/``."""
 
-    def box(self) -> tuple[tuple[float, float], tuple[float, float]] | None:
+    def box(self) -> Box | None:
         """The NTK box the design covers, ``((Θ1 lo, Θ1 hi), (Θ2/Θ1 lo, hi))``, from the design
         record's ``theta_bounds``; ``None`` for a design without one (the research code's
         values, no controller, Double DQN)."""

@@ -19,14 +19,11 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 from cdqn.agents.base import Agent, StepRecord
 from cdqn.agents.episodic_replay import EpisodeTail, qualifies
 from cdqn.config import ReplayConfig
+from cdqn.control.box import Box
 from cdqn.training.signals import SignalBuffer
 
 RATE_WINDOW = 20
 """Episodes over which the progress bar's steps/s is measured (wall time, everything in)."""
-
-Box = tuple[tuple[float, float], tuple[float, float]]
-"""A design's NTK box as ``((Θ1 lower, Θ1 upper), (ρ lower, ρ upper))`` with ρ = Θ2/Θ1
-(:class:`cdqn.control.box.NTKBox`)."""
 
 
 class DivergenceError(RuntimeError):

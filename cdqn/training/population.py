@@ -49,6 +49,7 @@ from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
 
 from cdqn.config import Config, resolve_tracking_uri, validate
+from cdqn.control.box import Box
 from cdqn.control.factory import make_controller
 from cdqn.control.setup import ControllerSetup
 from cdqn.network import QNetwork, save_network
@@ -56,7 +57,6 @@ from cdqn.training.build import build_population, member_config, member_seeds
 from cdqn.training.checkpoint import ROOT as CHECKPOINT_ROOT
 from cdqn.training.checkpoint import CheckpointStore, load_local, local_path, save_local
 from cdqn.training.interrupt import GracefulStop
-from cdqn.training.loop import Box
 from cdqn.training.population_checkpoint import (
     CLOSING_FILE,
     MemberCheckpoint,

@@ -21,7 +21,8 @@ from tqdm.auto import tqdm
 from cdqn.agents.base import StepRecord
 from cdqn.agents.episodic_replay import PopulationTail, Transitions, qualifies
 from cdqn.config import ReplayConfig
-from cdqn.training.loop import Box, DivergenceError, _diagnose, episode_stats
+from cdqn.control.box import Box
+from cdqn.training.loop import DivergenceError, _diagnose, episode_stats
 from cdqn.training.population_step import CHECK, DONE, ControlledPopulation
 from cdqn.training.signals import COLUMNS, SignalBuffer
 from cdqn.vector_env import VectorEnv
