@@ -37,7 +37,12 @@ from mlflow.exceptions import MlflowException  # noqa: E402
 from mlflow.store.db.db_types import DATABASE_ENGINES  # noqa: E402
 from mlflow.tracking import MlflowClient  # noqa: E402
 
-from cdqn.config import TrackingConfig, resolve_tracking_uri  # noqa: E402
+from cdqn.config import (  # noqa: E402
+    TARGET_CONTROLLERS,
+    TARGET_FIELDS,
+    TrackingConfig,
+    resolve_tracking_uri,
+)
 
 DEFAULT_URI = TrackingConfig.uri
 """The training default (``sqlite:///mlflow.db`` in the working folder)."""
@@ -82,6 +87,11 @@ SETTINGS = (
     "weights.target.gamma_eff",
     "weights.target.step_scale",
     "weights.target.rho_cap",
+    *(
+        f"weights.controller_target.{controller}.{key}"
+        for controller in TARGET_CONTROLLERS
+        for key in TARGET_FIELDS
+    ),
     "weights.replay.repeats",
     "weights.replay.last",
     "weights.replay.when",

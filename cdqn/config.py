@@ -146,6 +146,25 @@ class LearningTarget:
 
 
 @dataclass
+class OwnTarget:
+    """A controller's own learning target on one environment: each range set here replaces
+    that of ``weights.target`` for this controller's design (null: ``weights.target``'s)."""
+
+    gamma_eff: list[float] | None = None
+    step_scale: list[float] | None = None
+    rho_cap: float | None = None
+
+
+@dataclass
+class ControllerTargets:
+    """Per controller, the ranges of its own learning target (:func:`target_of`)."""
+
+    h2: OwnTarget = field(default_factory=OwnTarget)
+    hinf: OwnTarget = field(default_factory=OwnTarget)
+    hinf_f: OwnTarget = field(default_factory=OwnTarget)
+
+
+@dataclass
 class ReplayConfig:
     """Episodic replay (paper Sec. 4, remark on replay; research code on Acrobot): after an
     episode that qualifies, its final transitions pass again through the same controlled
@@ -204,6 +223,8 @@ class WeightsConfig:
     """The research code's hand-copied designs, used with controller.design=paper."""
     target: LearningTarget = field(default_factory=LearningTarget)
     """Learning target of the synthesised designs (γ_eff and 1 + k1 ranges)."""
+    controller_target: ControllerTargets = field(default_factory=ControllerTargets)
+    """Per controller, ranges that replace those of ``target`` for its design alone."""
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     """Episodic replay of the controlled agents."""
     reset_integrator: IntegratorReset = field(default_factory=IntegratorReset)
@@ -408,6 +429,36 @@ class SynthesizeConfig(Config):
     """Folder for controller.json, report.txt, closed_loop_sv.csv and the plots."""
 
 
+TARGET_FIELDS = ("gamma_eff", "step_scale", "rho_cap")
+"""The ranges of a learning target (:class:`LearningTarget`)."""
+TARGET_CONTROLLERS = ("h2", "hinf", "hinf_f")
+"""The controllers whose designs keep a learning target (:class:`ControllerTargets`)."""
+
+
+def target_key(weights: Any, controller: str, name: str) -> str:
+    """Configuration key of range ``name`` of the learning target that the design of
+    ``controller`` keeps: ``weights.controller_target.<controller>.<name>`` when that is set,
+    else ``weights.target.<name>``."""
+    if _own_range(weights, controller, name) is None:
+        return f"weights.target.{name}"
+    return f"weights.controller_target.{controller}.{name}"
+
+
+def target_of(weights: Any, controller: str) -> dict[str, Any]:
+    """The learning target the design of ``controller`` keeps, ``{range: value}``: its own
+    ranges where set, the environment's ``weights.target`` for the others (:func:`target_key`)."""
+    out: dict[str, Any] = {}
+    for name in TARGET_FIELDS:
+        own = _own_range(weights, controller, name)
+        out[name] = getattr(weights.target, name) if own is None else own
+    return out
+
+
+def _own_range(weights: Any, controller: str, name: str) -> Any:
+    own = getattr(getattr(weights, "controller_target", None), controller, None)
+    return None if own is None else getattr(own, name, None)
+
+
 def register_configs() -> None:
     """Register the schema in Hydra's ConfigStore as ``base_config``."""
     cs = ConfigStore.instance()
@@ -535,20 +586,27 @@ def validate(cfg: Config) -> None:
                 )
             )
         checks.append((w.w_delta > 0, f"weights.{group}.w_delta={w.w_delta}: must be > 0"))
-    tgt = cfg.weights.target
-    g_eff, scale = list(tgt.gamma_eff), list(tgt.step_scale)
-    checks.append(
-        (
-            len(g_eff) == 2 and g_eff[0] <= g_eff[1],
-            f"weights.target.gamma_eff={g_eff}: need [lower, upper] with lower <= upper",
-        )
-    )
-    checks.append(
-        (
-            len(scale) == 2 and 0 < scale[0] <= scale[1],
-            f"weights.target.step_scale={scale}: need [lower, upper] with 0 < lower <= upper",
-        )
-    )
+    targets = [("weights.target", cfg.weights.target)] + [
+        (f"weights.controller_target.{name}", getattr(cfg.weights.controller_target, name))
+        for name in TARGET_CONTROLLERS
+    ]
+    for key, tgt in targets:
+        if tgt.gamma_eff is not None:
+            g_eff = list(tgt.gamma_eff)
+            checks.append(
+                (
+                    len(g_eff) == 2 and g_eff[0] <= g_eff[1],
+                    f"{key}.gamma_eff={g_eff}: need [lower, upper] with lower <= upper",
+                )
+            )
+        if tgt.step_scale is not None:
+            scale = list(tgt.step_scale)
+            checks.append(
+                (
+                    len(scale) == 2 and 0 < scale[0] <= scale[1],
+                    f"{key}.step_scale={scale}: need [lower, upper] with 0 < lower <= upper",
+                )
+            )
     rp = cfg.weights.replay
     checks.append((rp.repeats >= 0, f"weights.replay.repeats={rp.repeats}: must be >= 0 (0: off)"))
     checks.append(

@@ -63,7 +63,15 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf, read_write
 from optuna.pruners import BasePruner, NopPruner
 
-from cdqn.config import Config, ConfigError, register_configs, resolve_tracking_uri, validate
+from cdqn.config import (
+    TARGET_FIELDS,
+    Config,
+    ConfigError,
+    register_configs,
+    resolve_tracking_uri,
+    target_key,
+    validate,
+)
 from cdqn.control.errors import DesignError
 from cdqn.training.interrupt import GracefulStop
 
@@ -232,7 +240,7 @@ def apply(cfg: DictConfig, space: dict[str, ParamSpec], params: dict[str, Any]) 
     with read_write(out):
         for key, value in params.items():
             p = space[key]
-            path = p.path.format(controller=name)
+            path = _own_target_path(p.path.format(controller=name), out.weights, name)
             if p.width is not None:
                 value = [float(value) - p.width / 2, float(value) + p.width / 2]
             elif p.choices is None and p.scale:
@@ -241,6 +249,15 @@ def apply(cfg: DictConfig, space: dict[str, ParamSpec], params: dict[str, Any]) 
                                 else OmegaConf.select(out, path), float(value))  # fmt: skip
             OmegaConf.update(out, path, value, merge=False)
     return out
+
+
+def _own_target_path(path: str, weights: Any, controller: str) -> str:
+    """``weights.target.<range>`` names that range of the tuned controller's learning target:
+    ``weights.controller_target.<controller>.<range>`` where the environment sets it."""
+    head = "weights.target."
+    if not path.startswith(head) or path[len(head) :] not in TARGET_FIELDS:
+        return path
+    return target_key(weights, controller, path[len(head) :])
 
 
 def _scaled(value: Any, factor: float) -> Any:

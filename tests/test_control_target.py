@@ -107,6 +107,35 @@ def test_a_target_the_box_cannot_hold_is_refused_by_name(kind: str) -> None:
         make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
 
 
+OWN = ["weights.controller_target.hinf_f.gamma_eff=[-0.8,-0.6]"]
+"""``hinf_f``'s own effective-discount range; its step-scale range stays ``TARGET``'s."""
+
+
+def test_a_controller_keeps_its_own_target_and_the_others_the_shared_one(tmp_path: Path) -> None:
+    conf = _conf("hinf_f", OWN)
+    own = TargetBox.of_controller(conf.weights, "hinf_f")
+    assert (own.gamma_eff, own.step_scale) == ((-0.8, -0.6), (0.5, 0.9))
+    for other in ("h2", "hinf"):
+        shared = TargetBox.of_controller(conf.weights, other)
+        assert (shared.gamma_eff, shared.step_scale) == ((-0.9, -0.5), (0.5, 0.9))
+    inputs = design_inputs(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
+    record, _, _ = load_or_design(inputs, tmp_path)
+    assert record["certificate"]["passed"]
+    lt = record["learning_target"]
+    assert lt["target"] == {"gamma_eff": [-0.8, -0.6], "step_scale": [0.5, 0.9]}
+    assert -0.8 - 1e-9 <= lt["gamma_eff"] <= -0.6 + 1e-9
+    assert 0.5 - 1e-9 <= lt["step_scale"] <= 0.9 + 1e-9
+
+
+@pytest.mark.parametrize("kind", ["hinf_f", "h2"])
+def test_an_own_target_that_cannot_hold_is_refused_by_its_own_key(kind: str) -> None:
+    conf = _conf(kind, [f"weights.controller_target.{kind}.gamma_eff=[-3.0,-2.5]",
+                        "controller.synthesis.cache=false"])  # fmt: skip
+    key = rf"weights\.controller_target\.{kind}\.gamma_eff=\[-3\.0, -2\.5\]: need -1"
+    with pytest.raises(DesignError, match=key):
+        make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
+
+
 def test_dynamic_design_instantaneous_gain_keeps_the_target(tmp_path: Path) -> None:
     """A step applies the controller's D while Θ changes every step: D keeps the target too."""
     conf = _conf("hinf", [])

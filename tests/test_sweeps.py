@@ -93,6 +93,23 @@ def test_config_hash_ignores_where_and_how_a_run_is_recorded() -> None:
     assert config_hash(base) != config_hash(compose_config(["seed=1", "env=acrobot"]))
 
 
+def test_config_hash_of_runs_recorded_before_own_targets_existed_is_kept() -> None:
+    """A configuration with no controller's own learning target hashes as it did without the
+    setting (runs of earlier versions still count); one with an own range does not."""
+    base = compose_config(["env=acrobot", "controller=hinf_f"])
+    before = OmegaConf.to_container(base, resolve=True)
+    del before["weights"]["controller_target"]  # type: ignore[index]
+    assert config_hash(base) == config_hash(before)  # type: ignore[arg-type]
+    own = compose_config(
+        [
+            "env=acrobot",
+            "controller=hinf_f",
+            "weights.controller_target.hinf_f.gamma_eff=[0.9,0.95]",
+        ]
+    )
+    assert config_hash(own) != config_hash(base)
+
+
 TINY = [
     "network.width=16",
     "train.episodes=2",

@@ -13,7 +13,7 @@ from hydra import compose, initialize_config_dir
 from mlflow.tracking import MlflowClient
 from omegaconf import OmegaConf
 
-from cdqn.tune import EpisodeMedianPruner, Study, area, ma100, padded, summary_text
+from cdqn.tune import EpisodeMedianPruner, Study, apply, area, ma100, padded, summary_text
 from tests.conftest import CONF_DIR
 from tests.helpers import run_cli
 
@@ -406,3 +406,16 @@ def test_the_double_dqn_baseline_is_configured_as_a_training_run_would_be() -> N
     assert OmegaConf.to_container(out.controller) == OmegaConf.to_container(train_cfg.controller)
     assert out.env == train_cfg.env
     assert out.env.normalize is False and out.env.id == "Acrobot-v1"
+
+
+def test_a_specification_moves_the_tuned_controllers_own_target(tmp_path: Path) -> None:
+    """On an environment where ``hinf_f`` keeps its own effective-discount range, the
+    ``weights.target.gamma_eff`` dimension moves that range (the one its design keeps)."""
+    own = ["controller=hinf_f", "weights.controller_target.hinf_f.gamma_eff=[0.1,0.2]"]
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        cfg = compose("tune", overrides=_overrides(tmp_path, "own", 1, own))
+    study = Study(cfg)
+    out = apply(study.base, study.space, {"gamma_eff": -0.7, "step_scale": 0.7})
+    assert list(out.weights.controller_target.hinf_f.gamma_eff) == pytest.approx([-0.75, -0.65])
+    assert list(out.weights.target.step_scale) == pytest.approx([0.65, 0.75])
+    assert list(out.weights.target.gamma_eff) == list(study.base.weights.target.gamma_eff)

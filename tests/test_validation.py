@@ -63,6 +63,14 @@ BAD = [
     (["env.rbf_centres=6"], ["env.rbf_centres=6", "observed features [1, 3]", "no finite bounds"]),
     (["env=acrobot", "env.rbf_centres=5"], ["env.rbf_centres=5", "5^6 = 15625", "4096"]),
     (["env=acrobot", "env.normalize_scale=[1,1]"], ["env.normalize_scale=[1.0, 1.0]", "6 half"]),
+    (
+        ["weights.controller_target.hinf_f.step_scale=[0.6,0.2]"],
+        ["weights.controller_target.hinf_f.step_scale=[0.6, 0.2]", "0 < lower <= upper"],
+    ),
+    (
+        ["weights.controller_target.dqn.gamma_eff=[0.1,0.2]"],
+        ["weights.controller_target.dqn: no such setting", "allowed: h2, hinf, hinf_f"],
+    ),
 ]
 
 

@@ -155,7 +155,7 @@ def design_inputs(
         h2=asdict(weights.h2),
         synthesis=syn,
         discretization=cfg.discretization,
-        target=TargetBox.of(weights.target),
+        target=TargetBox.of_controller(weights, cfg.name),
     )
 
 
@@ -310,13 +310,15 @@ def _design_hinf(inputs: DesignInputs, samples: np.ndarray, cover: CoverFit) -> 
             break
     if chosen is None:
         if last is None:
+            key = "weights.target" if inputs.target is None else inputs.target.key("gamma_eff")
+            key = key.rsplit(".", 1)[0]
             raise DesignError(
                 f"hinf design for the box Θ1 ∈ {list(inputs.box.theta1)}, Θ2/Θ1 ∈ "
                 f"{list(inputs.box.ratio)} failed its certificate: with the learning target "
                 f"{inputs.target.to_dict() if inputs.target else None}, every instantaneous "
                 f"gain left by the shares λ in {list(DYNAMIC_SHARES)} of the synthesised "
                 f"dynamics (and {list(INTEGRAL_SHARES)} of its integral gain) is off the target "
-                "or unstable on the box; widen weights.target or narrow the box"
+                f"or unstable on the box; widen {key} or narrow the box"
             )
         K, cert = last
     else:

@@ -49,14 +49,14 @@ def make_controller(
 def _scheduled_h2(
     cfg: ControllerConfig, weights: WeightsConfig, discount: float, lr: float, box: Any
 ) -> ControllerSetup:
-    """The gain-scheduled H2 with the learning target of ``weights.target``, certified over
-    the NTK box frozen at every sample and grid point (:func:`cdqn.control.h2.certify_scheduled`);
-    :class:`DesignError` when the certificate fails."""
+    """The gain-scheduled H2 with its learning target (:meth:`TargetBox.of_controller`),
+    certified over the NTK box frozen at every sample and grid point
+    (:func:`cdqn.control.h2.certify_scheduled`); :class:`DesignError` when the certificate fails."""
     from cdqn.control.design import box_from_config  # noqa: PLC0415 (import time, above)
     from cdqn.control.h2 import certify_scheduled  # noqa: PLC0415
 
     w_x, w_c = list(weights.h2.w_x), weights.h2.w_c
-    asked = TargetBox.of(weights.target)
+    asked = TargetBox.of_controller(weights, cfg.name)
     ntk_box = box if box is not None else box_from_config(weights.theta_bounds)
     check_target(asked, ntk_box, scheduled=True)
     syn = cfg.synthesis

@@ -13,7 +13,8 @@ so learning settles where ``Q1 = r/(1+k1) + γ_eff Q2`` (``x_e`` integrates the 
 while ``1 + k1`` (the *step scale*) multiplies every SGD step, ``α(1 + k1)Θ1`` being the
 step's gain on Q1.  A robust design that leaves these free trades them for robustness: on
 the gradient-flow plant the worst-case H∞ objective is smallest for ``γ_eff → 0`` (the
-agent learns the immediate reward only).  So they are design inputs (``weights.target``):
+agent learns the immediate reward only).  So they are design inputs (``weights.target``, or
+a controller's own ``weights.controller_target.<controller>``):
 
 * static designs (``hinf_f``, ``h2``) keep ``(γ_eff, 1 + k1)`` in the target box;
 * a dynamic design keeps its DC gain from ``[Q1, Q2]`` to ``u``,
@@ -29,11 +30,12 @@ the target's where ρ is small and lower only where the step's loop would otherw
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from cdqn.config import TARGET_FIELDS, target_key, target_of
 from cdqn.control.box import NTKBox
 from cdqn.control.certificate import ControllerMatrices
 from cdqn.control.errors import DesignError
@@ -48,6 +50,22 @@ class TargetBox:
     step_scale: tuple[float, float]
     rho_cap: float | None = None
     """Scheduled controllers (h2): cap γ_eff at ``rho_cap/ρ`` at each step (ρ = Θ2/Θ1)."""
+    keys: tuple[tuple[str, str], ...] = field(default=(), compare=False)
+    """``(range, configuration key)`` of each range (:meth:`of_controller`); a range not
+    listed came from ``weights.target``."""
+
+    @classmethod
+    def of_controller(cls, weights: Any, controller: str) -> TargetBox:
+        """The target the design of ``controller`` keeps: the ranges of
+        ``weights.controller_target.<controller>`` that are set, ``weights.target``'s for the
+        others (:func:`cdqn.config.target_of`)."""
+        box = cls.of(target_of(weights, controller))
+        keys = tuple((n, target_key(weights, controller, n)) for n in TARGET_FIELDS)
+        return cls(box.gamma_eff, box.step_scale, box.rho_cap, keys)
+
+    def key(self, name: str) -> str:
+        """Configuration key of range ``name`` (for the errors that name it)."""
+        return dict(self.keys).get(name, f"weights.target.{name}")
 
     @classmethod
     def of(cls, cfg: Any) -> TargetBox:
@@ -146,7 +164,7 @@ def check_target(target: TargetBox, box: NTKBox, scheduled: bool = False) -> Non
     lo, hi = target.gamma_eff
     if lo < -1.0 or hi > 1.0:
         raise DesignError(
-            f"weights.target.gamma_eff={list(target.gamma_eff)}: need -1 <= γ_eff <= 1; the "
+            f"{target.key('gamma_eff')}={list(target.gamma_eff)}: need -1 <= γ_eff <= 1; the "
             "effective Bellman operator r/(1 + k1) + γ_eff·max Q(s') is a contraction only for "
             "|γ_eff| < 1, and learning that once solved CartPole with γ_eff = −2.5 collapsed "
             "when its episodes stopped terminating (docs/learning.md)"
@@ -155,13 +173,13 @@ def check_target(target: TargetBox, box: NTKBox, scheduled: bool = False) -> Non
     if scheduled and target.rho_cap is not None:
         if not 0.0 < target.rho_cap < 1.0:
             raise DesignError(
-                f"weights.target.rho_cap={target.rho_cap}: need 0 < rho_cap < 1 (γ_eff·ρ is "
+                f"{target.key('rho_cap')}={target.rho_cap}: need 0 < rho_cap < 1 (γ_eff·ρ is "
                 "capped there at every step; at 1 or above the step's loop is unstable)"
             )
         return
     if target.gamma_eff[0] * rho_max >= 1.0:
         raise DesignError(
-            f"weights.target.gamma_eff={list(target.gamma_eff)} conflicts with the NTK box "
+            f"{target.key('gamma_eff')}={list(target.gamma_eff)} conflicts with the NTK box "
             f"(Θ2/Θ1 up to {rho_max:g}): the learning loop is stable over the box only for "
             f"γ_eff < 1/ρ_max = {1.0 / rho_max:.4g}; lower the effective discount or narrow "
             "the box's ratio range (weights.theta_bounds.ratio)"

@@ -3,7 +3,8 @@ tracking store made ready once before parallel jobs start.
 
 Every run is tagged ``config_hash``: a hash of its resolved configuration without the keys
 that do not change what is learned (:data:`IGNORED_KEYS`: where it is recorded, progress
-display, checkpoint interval, population size), seed included.  With
+display, checkpoint interval, population size), seed included; a controller's own learning
+target enters it only where one of its ranges is set.  With
 ``tracking.skip_finished=true`` a job first asks the store for a FINISHED run with its hash
 and, if there is one, logs ``skipping …`` and trains nothing; a population skips the
 members that finished and trains the others.  An interrupted sweep started again therefore
@@ -66,8 +67,25 @@ def config_hash(cfg: DictConfig | dict[str, Any]) -> str:
             node = node.get(part, {}) if isinstance(node, dict) else {}
         if isinstance(node, dict):
             node.pop(leaf, None)
+    _drop_unset_own_targets(tree)
     text = json.dumps(tree, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _drop_unset_own_targets(tree: dict[str, Any]) -> None:
+    """Leave the controllers' own learning targets out where none of their ranges is set
+    (``weights.controller_target``): the configuration is then the one of runs recorded
+    before the setting existed, and a restarted sweep still finds them."""
+    weights = tree.get("weights")
+    own = weights.get("controller_target") if isinstance(weights, dict) else None
+    if not isinstance(own, dict):
+        return
+    for name in list(own):
+        ranges = own[name]
+        if isinstance(ranges, dict) and all(v is None for v in ranges.values()):
+            del own[name]
+    if not own:
+        weights.pop("controller_target")
 
 
 def find_finished(client: MlflowClient, experiment: str, chash: str) -> Run | None:
