@@ -23,7 +23,7 @@ class ConfigError(ValueError):
 
 REPLAY_WHEN = ("terminated", "truncated", "any")
 """Episodes that qualify for episodic replay (:class:`ReplayConfig`)."""
-EPS_SCHEDULES = ("random_action", "step")
+EPS_SCHEDULES = ("random_action", "step", "episode")
 """What lowers ε by eps_dec (:class:`cdqn.agents.base.EpsilonGreedy`)."""
 EXPERIMENT_TAGS = {"mlflow.experimentKind": "custom_model_development"}
 """Tags of the MLflow experiments cdqn creates: the UI then opens them as model-training
@@ -61,7 +61,7 @@ class EnvConfig:
     random action; Acrobot: 5e-6 per step, docs/learning.md)."""
     eps_schedule: str = "random_action"
     """What lowers ε by eps_dec, taken by train.eps_schedule: ``random_action`` (research
-    code) or ``step`` (every step: linear in steps)."""
+    code), ``step`` (every step: linear in steps) or ``episode`` (every episode start)."""
 
 
 @dataclass
@@ -337,8 +337,9 @@ class TrainConfig:
     eps_dec: float = 1e-4
     """Decrease of ε (default: the environment's env.eps_dec)."""
     eps_schedule: str = "random_action"
-    """ε falls by eps_dec after each ``random_action`` (research code) or each ``step``
-    (linear in steps), floored at eps_end (default: the environment's env.eps_schedule)."""
+    """ε falls by eps_dec after each ``random_action`` (research code), after each ``step``
+    (linear in steps) or at the start of each ``episode`` (linear in episodes), floored at
+    eps_end (default: the environment's env.eps_schedule)."""
     bootstrap_terminal: bool = False
     """Bootstrap from max Q(s') at terminal steps too (the research code's behaviour); by
     default only truncated steps (the time limit) bootstrap, terminal ones do not."""

@@ -126,7 +126,8 @@ def _population(overrides: list[str], seeds: list[int]) -> tuple[list[Member], D
     ("env", "extra"),
     [("cartpole", []), ("acrobot", ["train.episodes=2"]),
      ("mountaincar", ["train.episodes=2", "network.dtype=float32"]),
-     ("cartpole", ["controller.discount=0.9"])],
+     ("cartpole", ["controller.discount=0.9"]),
+     ("cartpole", ["train.eps_schedule=episode", "train.eps_dec=0.1"])],
 )  # fmt: skip
 def test_ddqn_population_members_step_exactly_as_single_runs(env: str, extra: list[str]) -> None:
     """Returns, every per-step signal (Q1, Q2, Θ1, Θ2, loss) and the final state (networks,

@@ -165,6 +165,7 @@ def _population(overrides: list[str], seeds: list[int]) -> list[Member]:
         ("cartpole", "h2", ["weights.replay.repeats=2", "weights.replay.last=null"]),
         ("cartpole", "hinf", ["controller.reset_integrator=false"]),
         ("cartpole", "hinf_f", ["train.eps_schedule=step"]),
+        ("cartpole", "h2", ["train.eps_schedule=episode", "train.eps_dec=0.1"]),
         (
             "mountaincar",
             "hinf",
@@ -210,16 +211,26 @@ def test_exploration_drawn_ahead_equals_epsilon_greedy(n_actions: int, schedule:
     """Decisions drawn ahead in blocks (populations) are the decisions, and leave the
     generator in the state, of one ``EpsilonGreedy.explore`` call per step (single runs)."""
     cfg = TrainConfig(eps_start=1.0, eps_end=0.05, eps_dec=2e-3, eps_schedule=schedule)
+    if schedule == "episode":
+        cfg.eps_dec = 0.02
     steps = 2000
     explorer = EpsilonGreedy(cfg, n_actions, np.random.default_rng(7))
-    expected = [explorer.explore() for _ in range(steps)]
     plan = ExplorationPlan(cfg, n_actions, [np.random.default_rng(7)], block=300)
-    drawn = [int(plan.next()[0]) for _ in range(steps)]
+    expected, drawn = [], []
+    for t in range(steps):
+        if t % 37 == 0:  # episodes of 37 steps: ε falls at their starts (episode schedule)
+            explorer.start_episode()
+            plan.start_episode(0)
+        expected.append(explorer.explore())
+        drawn.append(int(plan.next()[0]))
     assert drawn == [-1 if a is None else a for a in expected]
     assert 0 < sum(a is None for a in expected) < steps  # both kinds of decision occur
     # the plan has drawn to the end of its block (2100 decisions): so has the explorer
     tail = [explorer.explore() for _ in range(100)]
-    assert [-1 if a is None else a for a in tail] == plan.plan[200:, 0].tolist()
+    ahead = plan.plan[200:, 0]
+    if schedule == "episode":  # drawn ahead: the uniform and the action, decided with ε now
+        ahead = np.where(plan.uniform[200:, 0] <= plan.epsilon[0], ahead, -1)
+    assert [-1 if a is None else a for a in tail] == ahead.tolist()
     assert explorer.rng.bit_generator.state == plan.rngs[0].bit_generator.state
     assert explorer.epsilon == plan.epsilon[0] < cfg.eps_start
 

@@ -230,6 +230,8 @@ def test_sigterm_to_population_process_then_resume_equals_uninterrupted(tmp_path
             ],
         ),
         (31, DDQN),  # a Double DQN population: buffers, target networks, cached passes
+        # ε per episode: the draws made ahead but not yet taken are part of the checkpoint
+        (41, [*CONTROLLED, "train.eps_schedule=episode", "train.eps_dec=0.05"]),
     ],
 )
 def test_population_resumes_from_a_periodic_checkpoint(

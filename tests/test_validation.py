@@ -58,7 +58,10 @@ BAD = [
     (["env.id=Taxi-v3"], ["env.id='Taxi-v3'", "not a registered", "did you mean Taxi-v4?"]),
     (["env.rbf_centres=1"], ["env.rbf_centres=1", "must be >= 2"]),
     (["env=mountaincar", "env.rbf_width=0"], ["env.rbf_width=0", "> 0"]),
-    (["env.eps_schedule=episode"], ["train.eps_schedule='episode'", "allowed random_action, step"]),
+    (
+        ["env.eps_schedule=time"],
+        ["train.eps_schedule='time'", "allowed random_action, step, episode"],
+    ),
     (["train.eps_schedule=linear"], ["train.eps_schedule='linear'", "allowed random_action, step"]),
     (["env.rbf_centres=6"], ["env.rbf_centres=6", "observed features [1, 3]", "no finite bounds"]),
     (["env=acrobot", "env.rbf_centres=5"], ["env.rbf_centres=5", "5^6 = 15625", "4096"]),

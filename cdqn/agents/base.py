@@ -49,20 +49,33 @@ class Agent(Protocol):
 class EpsilonGreedy:
     """ε-greedy: start at ``eps_start`` and lower ε by ``eps_dec``, floored at ``eps_end``,
     after each random action (``eps_schedule=random_action``, the research code: ε falls
-    while it is ≥ ``eps_end``, so as the agent explores) or after each step
+    while it is ≥ ``eps_end``, so as the agent explores), after each step
     (``eps_schedule=step``: ε_t = max(eps_end, eps_start − eps_dec·t), linear in steps as
-    in DQN).  Step ``t`` acts at random with probability ε_t."""
+    in DQN) or at the start of each episode (``eps_schedule=episode``: episode ``e``,
+    counted from 0, acts with ε = max(eps_end, eps_start − eps_dec·(e + 1)), however long
+    its episodes are).  Step ``t`` acts at random with probability ε_t.  Under the episode
+    schedule every step draws both the uniform and the random action, so that decisions can
+    be drawn ahead of the episode ends that set ε (:class:`ExplorationPlan`)."""
 
     def __init__(self, cfg: TrainConfig, n_actions: int, rng: np.random.Generator) -> None:
         self.epsilon = cfg.eps_start
         self.eps_end = cfg.eps_end
         self.eps_dec = cfg.eps_dec
         self.per_step = cfg.eps_schedule == "step"
+        self.per_episode = cfg.eps_schedule == "episode"
         self.n_actions = n_actions
         self.rng = rng
 
+    def start_episode(self) -> None:
+        """``eps_schedule=episode``: lower ε by ``eps_dec`` (down to ``eps_end``)."""
+        if self.per_episode and self.epsilon > self.eps_end:
+            self.epsilon = max(self.eps_end, self.epsilon - self.eps_dec)
+
     def explore(self) -> int | None:
         """A random action with probability ε (and decay ε), else None."""
+        if self.per_episode:
+            u, action = self.rng.random(), int(self.rng.integers(self.n_actions))
+            return None if u > self.epsilon else action
         epsilon = self.epsilon
         if self.per_step and epsilon > self.eps_end:
             self.epsilon = max(self.eps_end, epsilon - self.eps_dec)
@@ -95,3 +108,13 @@ def explore_ahead(rng, epsilon, eps_end, eps_dec, per_step, n_actions, out):  # 
             epsilon -= eps_dec
         out[i] = rng.integers(0, n_actions)
     return epsilon
+
+
+@njit(cache=True)
+def draw_ahead(rng, n_actions, uniform, action):  # noqa: ANN001, ANN201
+    """The next ``len(uniform)`` draws of :meth:`EpsilonGreedy.explore` under
+    ``eps_schedule=episode`` from ``rng``: the uniform that is compared with ε, and the
+    random action, of each step (the same generator order as ``explore``)."""
+    for i in range(uniform.shape[0]):
+        uniform[i] = rng.random()
+        action[i] = rng.integers(0, n_actions)

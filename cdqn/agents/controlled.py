@@ -85,6 +85,7 @@ class ControlledAgent:
         return self.explorer.epsilon
 
     def start_episode(self) -> None:
+        self.explorer.start_episode()
         if self.reset_integrator:
             self.x_e = 0.0
         self.controller.reset()

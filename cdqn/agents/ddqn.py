@@ -57,7 +57,7 @@ class DDQNAgent:
         return self.explorer.epsilon
 
     def start_episode(self) -> None:
-        pass
+        self.explorer.start_episode()
 
     def act(self, obs: np.ndarray) -> int:
         action = self.explorer.explore()

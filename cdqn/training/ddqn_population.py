@@ -121,7 +121,7 @@ class DDQNPopulation:
         return np.array([e.epsilon for e in self.explorers])
 
     def start_episode(self, i: int) -> None:
-        pass
+        self.explorers[i].start_episode()
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         """ε-greedy actions ``(K,)`` (the array is reused by the next call)."""

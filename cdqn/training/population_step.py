@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from cdqn.agents.base import explore_ahead
+from cdqn.agents.base import draw_ahead, explore_ahead
 from cdqn.agents.episodic_replay import Transitions
 from cdqn.config import TrainConfig
 from cdqn.control.kernels import scheduled_lqr_step, state_space_step, static_gain_u
@@ -132,7 +132,9 @@ class ControllerArrays:
 
 class ExplorationPlan:
     """ε-greedy decisions of ``K`` members, drawn ``block`` steps ahead from each member's
-    generator (:func:`cdqn.agents.base.explore_ahead`)."""
+    generator (:func:`cdqn.agents.base.explore_ahead`).  Under ``eps_schedule=episode`` the
+    draws are made ahead (:func:`cdqn.agents.base.draw_ahead`) and compared with each
+    member's ε when the step is taken, since ε changes at episode ends."""
 
     def __init__(
         self, cfg: TrainConfig, n_actions: int, rngs: list[np.random.Generator], block: int = 512
@@ -141,31 +143,54 @@ class ExplorationPlan:
         self.epsilon = np.full(len(rngs), float(cfg.eps_start))
         self.eps_end, self.eps_dec = float(cfg.eps_end), float(cfg.eps_dec)
         self.per_step = cfg.eps_schedule == "step"
+        self.per_episode = cfg.eps_schedule == "episode"
         self.n_actions = n_actions
         self.plan = np.empty((block, len(rngs)), dtype=np.int64)
+        """Decisions (random action or −1); per episode: the random actions."""
+        self.uniform = np.empty((block, len(rngs)) if self.per_episode else (0, len(rngs)))
+        """Per episode: the uniforms compared with ε."""
+        self.decision = np.empty(len(rngs), dtype=np.int64)
         self.pos = block
 
     def next(self) -> np.ndarray:
         """This step's decisions ``(K,)``: a random action, or −1 for the greedy one."""
         if self.pos == len(self.plan):
             for k, rng in enumerate(self.rngs):
+                if self.per_episode:
+                    draw_ahead(rng, self.n_actions, self.uniform[:, k], self.plan[:, k])
+                    continue
                 self.epsilon[k] = explore_ahead(
                     rng, self.epsilon[k], self.eps_end, self.eps_dec, self.per_step,
                     self.n_actions, self.plan[:, k],
                 )  # fmt: skip
             self.pos = 0
         self.pos += 1
-        return self.plan[self.pos - 1]
+        if not self.per_episode:
+            return self.plan[self.pos - 1]
+        random = self.uniform[self.pos - 1] <= self.epsilon
+        np.copyto(self.decision, np.where(random, self.plan[self.pos - 1], -1))
+        return self.decision
+
+    def start_episode(self, i: int) -> None:
+        """``eps_schedule=episode``: member ``i``'s ε falls by ``eps_dec`` (to ``eps_end``)."""
+        if self.per_episode and self.epsilon[i] > self.eps_end:
+            self.epsilon[i] = max(self.eps_end, self.epsilon[i] - self.eps_dec)
 
     def select(self, keep: np.ndarray) -> None:
         self.rngs = [self.rngs[i] for i in keep]
         self.epsilon, self.plan = self.epsilon[keep], np.ascontiguousarray(self.plan[:, keep])
+        self.uniform = np.ascontiguousarray(self.uniform[:, keep])
+        self.decision = self.decision[keep]
 
     def state_dict(self, i: int) -> dict[str, Any]:
         """Member ``i``'s generator state, ε after the drawn decisions, and the decisions
-        drawn but not yet taken (so that a restored plan continues bit for bit)."""
-        return {"rng": self.rngs[i].bit_generator.state, "epsilon": float(self.epsilon[i]),
-                "undrawn": self.plan[self.pos :, i].copy()}  # fmt: skip
+        (per episode: the draws) drawn but not yet taken (so that a restored plan continues
+        bit for bit)."""
+        state = {"rng": self.rngs[i].bit_generator.state, "epsilon": float(self.epsilon[i]),
+                 "undrawn": self.plan[self.pos :, i].copy()}  # fmt: skip
+        if self.per_episode:
+            state["undrawn_uniform"] = self.uniform[self.pos :, i].copy()
+        return state
 
     def load_state_dict(self, i: int, state: dict[str, Any]) -> None:
         """Restore member ``i``; every member of a plan shares one position in it, so all
@@ -175,6 +200,8 @@ class ExplorationPlan:
         undrawn = np.asarray(state["undrawn"], dtype=np.int64)
         self.pos = len(self.plan) - len(undrawn)
         self.plan[self.pos :, i] = undrawn
+        if self.per_episode:
+            self.uniform[self.pos :, i] = np.asarray(state["undrawn_uniform"], dtype=float)
 
 
 class ControlledPopulation:
@@ -226,6 +253,7 @@ class ControlledPopulation:
         return self.explore.epsilon
 
     def start_episode(self, i: int) -> None:
+        self.explore.start_episode(i)
         if self.reset_integrator:
             self.x_e[i] = 0.0
         self.controller.reset(i)
