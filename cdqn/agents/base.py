@@ -118,3 +118,12 @@ def draw_ahead(rng, n_actions, uniform, action):  # noqa: ANN001, ANN201
     for i in range(uniform.shape[0]):
         uniform[i] = rng.random()
         action[i] = rng.integers(0, n_actions)
+
+
+@njit(cache=True)
+def decide(uniform, action, epsilon, out):  # noqa: ANN001, ANN201
+    """One step's decisions under ``eps_schedule=episode`` from draws made ahead
+    (:func:`draw_ahead`): member ``k`` takes its random action where its uniform is at most
+    its ε (as :meth:`EpsilonGreedy.explore`), else −1 (greedy)."""
+    for k in range(out.shape[0]):
+        out[k] = action[k] if uniform[k] <= epsilon[k] else -1

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from cdqn.agents.base import draw_ahead, explore_ahead
+from cdqn.agents.base import decide, draw_ahead, explore_ahead
 from cdqn.agents.episodic_replay import Transitions
 from cdqn.config import TrainConfig
 from cdqn.control.kernels import scheduled_lqr_step, state_space_step, static_gain_u
@@ -134,7 +134,8 @@ class ExplorationPlan:
     """ε-greedy decisions of ``K`` members, drawn ``block`` steps ahead from each member's
     generator (:func:`cdqn.agents.base.explore_ahead`).  Under ``eps_schedule=episode`` the
     draws are made ahead (:func:`cdqn.agents.base.draw_ahead`) and compared with each
-    member's ε when the step is taken, since ε changes at episode ends."""
+    member's ε when the step is taken (:func:`cdqn.agents.base.decide`), since ε changes at
+    episode ends."""
 
     def __init__(
         self, cfg: TrainConfig, n_actions: int, rngs: list[np.random.Generator], block: int = 512
@@ -167,8 +168,7 @@ class ExplorationPlan:
         self.pos += 1
         if not self.per_episode:
             return self.plan[self.pos - 1]
-        random = self.uniform[self.pos - 1] <= self.epsilon
-        np.copyto(self.decision, np.where(random, self.plan[self.pos - 1], -1))
+        decide(self.uniform[self.pos - 1], self.plan[self.pos - 1], self.epsilon, self.decision)
         return self.decision
 
     def start_episode(self, i: int) -> None:
