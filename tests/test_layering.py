@@ -19,6 +19,9 @@ from cdqn.training import LAYERS
 ROOT = Path(cdqn.__file__).resolve().parent
 ENTRY_POINTS = {"cdqn.train", "cdqn.synthesize", "cdqn.tune", "cdqn.bench", "cdqn.evaluate"}
 TRAINING = "cdqn.training"
+TUNING = "cdqn.tuning"
+"""Above the training side: studies run populations; only the ``cdqn.tune`` entry point
+imports it."""
 
 
 def _modules(root: Path) -> dict[str, Path]:
@@ -116,7 +119,7 @@ def test_no_import_cycles(graph: dict[str, set[str]]) -> None:
 def test_lower_layers_never_import_training_or_entry_points(
     graph: dict[str, set[str]],
 ) -> None:
-    lower = [m for m in graph if not m.startswith(TRAINING) and m not in ENTRY_POINTS]
+    lower = [m for m in graph if not m.startswith((TRAINING, TUNING)) and m not in ENTRY_POINTS]
     assert {
         "cdqn.config",
         "cdqn.envs",
@@ -125,9 +128,15 @@ def test_lower_layers_never_import_training_or_entry_points(
         "cdqn.control.design",
     } <= set(lower)
     wrong = {
-        m: sorted(d for d in graph[m] if d.startswith(TRAINING) or d in ENTRY_POINTS) for m in lower
+        m: sorted(d for d in graph[m] if d.startswith((TRAINING, TUNING)) or d in ENTRY_POINTS)
+        for m in lower
     }
     assert {m: d for m, d in wrong.items() if d} == {}
+
+
+def test_only_the_tune_entry_point_imports_the_tuning_side(graph: dict[str, set[str]]) -> None:
+    users = {m for m, deps in graph.items() if any(d.startswith(TUNING) for d in deps)}
+    assert {m for m in users if not m.startswith(TUNING)} == {"cdqn.tune"}
 
 
 def test_training_modules_import_only_lower_layers(graph: dict[str, set[str]]) -> None:

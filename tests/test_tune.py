@@ -13,7 +13,12 @@ from hydra import compose, initialize_config_dir
 from mlflow.tracking import MlflowClient
 from omegaconf import OmegaConf
 
-from cdqn.tune import EpisodeMedianPruner, Study, apply, area, ma100, padded, summary_text
+from cdqn.tuning.objective import area, ma100, padded
+from cdqn.tuning.pruner import EpisodeMedianPruner
+from cdqn.tuning.report import summary_text
+from cdqn.tuning.settings import TuneSettings, episode_budget
+from cdqn.tuning.space import apply, fit_to_observation, sample
+from cdqn.tuning.study import Study, _with_controller
 from tests.conftest import CONF_DIR
 from tests.helpers import run_cli
 
@@ -26,6 +31,21 @@ def _store(uri: str, experiment: str, tmp: Path) -> None:
     client = MlflowClient(uri)
     if client.get_experiment_by_name(experiment) is None:
         client.create_experiment(experiment, (tmp / "mlartifacts").as_uri())
+
+
+ONLY_TARGET = [
+    f"~tune.space.{d}"
+    for d in (
+        "normalize",
+        "rbf",
+        "eps_schedule",
+        "eps_dec_action",
+        "eps_dec_episode",
+        "lr",
+        "reset_integrator",
+    )
+]
+"""The shared dimensions and α left out: these studies search the learning target alone."""
 
 
 def _overrides(tmp: Path, study: str, trials: int, extra: list[str] | None = None) -> list[str]:
@@ -50,6 +70,7 @@ def _overrides(tmp: Path, study: str, trials: int, extra: list[str] | None = Non
         "tune.space.step_scale.low=0.6",
         "tune.space.step_scale.high=0.8",
         "~tune.space.w_p",
+        *ONLY_TARGET,
         *(extra or []),
     ]
 
@@ -166,12 +187,12 @@ def test_a_stale_trial_is_retried_with_its_specification(monkeypatch, tmp_path: 
     import time
     import warnings
 
-    import cdqn.tune as tune
+    import cdqn.tuning.storage as tune
 
     monkeypatch.setattr(tune, "HEARTBEAT", 1)
     with warnings.catch_warnings():
         warnings.simplefilter("error", FutureWarning)
-        storage = tune._storage(f"sqlite:///{tmp_path / 'optuna.db'}")
+        storage = tune.open_storage(f"sqlite:///{tmp_path / 'optuna.db'}")
     study = optuna.create_study(study_name="hb", storage=storage, direction="maximize")
     trial = study.ask()
     trial.suggest_float("gamma_eff", -0.9, 0.9)
@@ -402,7 +423,7 @@ def test_the_double_dqn_baseline_is_configured_as_a_training_run_would_be() -> N
         tune_cfg = compose("tune", overrides=["env=acrobot", "controller=hinf_f"])
         train_cfg = compose("config", overrides=["env=acrobot", "controller=ddqn"])
     assert tune_cfg.env.normalize is True
-    out = Study._with_controller(tune_cfg, "ddqn")
+    out = _with_controller(tune_cfg, "ddqn")
     assert OmegaConf.to_container(out.controller) == OmegaConf.to_container(train_cfg.controller)
     assert out.env == train_cfg.env
     assert out.env.normalize is False and out.env.id == "Acrobot-v1"
@@ -419,3 +440,100 @@ def test_a_specification_moves_the_tuned_controllers_own_target(tmp_path: Path) 
     assert list(out.weights.controller_target.hinf_f.gamma_eff) == pytest.approx([-0.75, -0.65])
     assert list(out.weights.target.step_scale) == pytest.approx([0.65, 0.75])
     assert list(out.weights.target.gamma_eff) == list(study.base.weights.target.gamma_eff)
+
+
+def test_conditional_dimensions_are_sampled_only_when_their_condition_holds() -> None:
+    """``eps_dec_episode`` is sampled with ``eps_schedule=episode`` only, ``eps_dec_action``
+    with ``random_action`` only; both write ``train.eps_dec``."""
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        cfg = compose("tune", overrides=["controller=ddqn"])
+    space = OmegaConf.to_object(cfg.tune).space
+    study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0))
+    seen = set()
+    for _ in range(12):
+        trial = study.ask()
+        params = sample(trial, space)
+        schedule = params["eps_schedule"]
+        seen.add(schedule)
+        own = "eps_dec_episode" if schedule == "episode" else "eps_dec_action"
+        other = "eps_dec_action" if schedule == "episode" else "eps_dec_episode"
+        assert own in params and other not in params
+        out = apply(cfg, space, params)
+        assert out.train.eps_schedule == schedule and out.train.eps_dec == params[own]
+        study.tell(trial, 0.0)
+    assert seen == {"episode", "random_action"}
+
+
+def test_radial_features_are_offered_only_where_the_observation_allows_them() -> None:
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        space = OmegaConf.to_object(compose("tune").tune).space
+    assert space["rbf"].choices == [None, 4, 6]
+    assert "rbf" not in fit_to_observation(space, bounded=False, n_features=2, max_features=4096)
+    two = fit_to_observation(space, bounded=True, n_features=2, max_features=4096)
+    assert two["rbf"].choices == [None, 4, 6]
+    six = fit_to_observation(space, bounded=True, n_features=6, max_features=4096)
+    assert six["rbf"].choices == [None, 4]  # 4^6 = 4096, 6^6 = 46656
+    assert "rbf" not in fit_to_observation(space, bounded=True, n_features=7, max_features=4096)
+
+
+def test_the_episode_budget_follows_the_environments_cap() -> None:
+    t = TuneSettings(steps=300_000, min_episodes=100, max_episodes=2000)
+    assert episode_budget(t, 500) == 600
+    assert episode_budget(t, 1000) == 300
+    assert episode_budget(t, 100) == 2000  # at most max_episodes
+    assert episode_budget(t, 10_000) == 100  # at least min_episodes
+    assert episode_budget(TuneSettings(episodes=42), 500) == 42
+
+
+@pytest.mark.slow
+def test_both_agents_tuned_alike_compared_and_their_presets_reproduce_the_setting(
+    tmp_path: Path,
+) -> None:
+    """A design study and a Double DQN study of one environment on the same budget: both
+    search the shared dimensions (observation maps, exploration); the second study's
+    evaluation compares the two on the same fresh seeds; each preset, trained with
+    ``python -m cdqn.train``, has the tuned environment settings (cap, threshold,
+    observation scaling, exploration) and α."""
+    common = [
+        f"tracking.uri=sqlite:///{tmp_path / 'mlflow.db'}",
+        f"tune.storage=sqlite:///{tmp_path / 'optuna.db'}",
+        f"tune.preset_dir={tmp_path / 'presets'}",
+        f"controller.synthesis.cache_dir={tmp_path / 'cache'}",
+        "env=cartpole", "env.max_episode_steps=60", "env.solve_threshold=50",
+        "network.width=16", "tune.trials=2", "tune.seeds=2", "tune.episodes=8",
+        "tune.eval_seeds=2", "tune.pruner.kind=none", "controller.learning_starts=50",
+    ]  # fmt: skip
+    _store(f"sqlite:///{tmp_path / 'mlflow.db'}", "cdqn-tune", tmp_path)
+    design = _study([*common, "controller=hinf_f", "tune.space.gamma_eff.low=-0.95",
+                     "tune.space.gamma_eff.high=-0.6"])  # fmt: skip
+    ddqn = _study([*common, "controller=ddqn"])
+    shared = {"normalize", "eps_schedule"}
+    for summary in (design, ddqn):
+        assert shared <= set(summary["best_params"])
+        assert summary["evaluation"]["seeds"] == [1000, 1001]
+    assert ddqn["comparison"]["rows"] == ["ddqn", "hinf_f"]
+    assert "| hinf_f | cartpole-hinf_f |" in ddqn["comparison"]["table"]
+    client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    arts = {a.path for a in client.list_artifacts(ddqn["parent_run"], "comparison")}
+    assert arts == {"comparison/comparison.md", "comparison/comparison.png"}
+
+    for summary, agent in ((design, "hinf_f"), (ddqn, "ddqn")):
+        preset = Path(summary["preset"])
+        tuned = OmegaConf.load(preset)
+        assert tuned.env.max_episode_steps == 60 and tuned.env.solve_threshold == 50
+        assert tuned.extra.tuned.budget.trials == 2 and "normalize" in tuned.extra.tuned.space
+        with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+            cfg = compose("config", overrides=[f"controller={agent}", f"weights={preset.stem}",
+                          f"hydra.searchpath=[file://{tmp_path / 'presets'}]"])  # fmt: skip
+        best = summary["best_params"]
+        assert cfg.env.max_episode_steps == 60 and cfg.env.solve_threshold == 50
+        assert cfg.env.normalize == best["normalize"]
+        assert cfg.train.eps_schedule == best["eps_schedule"]
+        dec = best.get("eps_dec_episode", best.get("eps_dec_action"))
+        assert cfg.train.eps_dec == pytest.approx(dec)
+        if agent == "ddqn":
+            assert cfg.controller.lr == pytest.approx(best["lr"])
+            assert cfg.controller.train_freq == best["train_freq"]
+        else:
+            assert cfg.train.lr == pytest.approx(best["lr"])
+            assert cfg.controller.synthesis.ntk_bounds == "config"

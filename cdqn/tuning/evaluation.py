@@ -1,0 +1,185 @@
+"""The best specification on fresh seeds, and the tuned agents of one environment side by side.
+
+Every study of an environment evaluates its best trial on the same fresh seeds
+(``tune.eval_seed`` …) for the same episodes; the evaluation run keeps each seed's returns
+(``evaluation/returns.json``).  :func:`write_comparison` puts the latest evaluation of each
+agent tuned on the environment (same seeds, same episodes) into one table and one figure:
+final score (mean return of the last 100 episodes, mean ± std over seeds), first episode
+whose 100-episode mean reaches the solve threshold (median over seeds), seeds that reach it,
+and J, the area under the learning curve (:mod:`cdqn.tuning.objective`)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig
+
+from cdqn.tuning.objective import area, ma100, padded
+
+log = logging.getLogger("cdqn.tune")
+RETURNS = "evaluation/returns.json"
+"""Artifact of an evaluation run: ``{seed: [return per episode]}``."""
+
+
+def evaluate(study: Any, cfg: DictConfig, name: str) -> dict[str, Any]:
+    """Train ``cfg`` on the fresh seeds; its objective, final score and per-seed returns."""
+    from cdqn.tuning.trial import train_population  # noqa: PLC0415
+
+    conf, tracker = study.conf, study.tracker
+    agent = str(cfg.controller.name)
+    tags = {"study": conf.tune.study, "agent": agent, "env": conf.env.name,
+            "episodes": str(study.episodes), "seeds": _seeds_tag(cfg)}  # fmt: skip
+    run = tracker.child(study.parent, name, tags, kind="evaluation")
+    t0 = time.perf_counter()
+    prog, result, _ = train_population(study, cfg)
+    ids = [r.run_id for r in result.members]
+    tracker.nest(run, ids)
+    seeds = list(prog.returns)
+    if not any(prog.returns.values()):  # trained one after another: read the store
+        prog.returns = {s: tracker.returns(rid) for s, rid in zip(seeds, ids, strict=True)}
+        prog.failed = {s for s, r in zip(seeds, result.members, strict=True)
+                       if r.status == "FAILED"}  # fmt: skip
+    n = study.episodes
+    curves = {s: padded(r, n, s in prog.failed) or r for s, r in prog.returns.items()}
+    row = summarise(agent, curves, n, conf.env.solve_threshold)
+    out = {**row, "seeds": seeds, "diverged": len(prog.failed),
+           "seconds": time.perf_counter() - t0}  # fmt: skip
+    tracker.client.log_dict(run, {str(s): list(map(float, c)) for s, c in curves.items()}, RETURNS)
+    tracker.metrics(run, {"objective": row["objective"], "final_score": row["final_score"]})
+    tracker.end(run, "FINISHED", "complete")
+    log.info("%s on seeds %s: J = %.2f, final MA100 = %.1f ± %.1f", name, seeds,
+             row["objective"], row["final_score"], row["final_std"])  # fmt: skip
+    return out
+
+
+def _seeds_tag(cfg: DictConfig) -> str:
+    first = int(cfg.seed)
+    return f"{first}-{first + int(cfg.train.population) - 1}"
+
+
+def summarise(
+    agent: str, curves: dict[int, list[float]], n: int, threshold: float | None
+) -> dict[str, Any]:
+    """One agent's row: J, final score (mean ± std over seeds), solve episodes, the mean
+    MA100 curve."""
+    full = [c for c in curves.values() if len(c) == n]
+    finals = [float(np.mean(c[-100:])) for c in curves.values() if c]
+    solved = []
+    if threshold is not None:
+        for c in curves.values():
+            hit = np.flatnonzero(ma100(c) >= threshold) if c else np.array([])
+            solved.append(int(hit[0]) + 1 if hit.size else None)
+    reached = [e for e in solved if e is not None]
+    return {
+        "agent": agent,
+        "objective": area(full) if full and len(full) == len(curves) else float("nan"),
+        "final_score": float(np.mean(finals)),
+        "final_std": float(np.std(finals)),
+        "finals": finals,
+        "solve_median": float(np.median(reached)) if reached else None,
+        "solved": len(reached),
+        "curve": np.mean([ma100(c) for c in full], axis=0).tolist() if full else [],
+        "curve_std": np.std([ma100(c) for c in full], axis=0).tolist() if full else [],
+    }
+
+
+def write_comparison(study: Any, summary: dict[str, Any]) -> dict[str, Any]:
+    """The latest evaluation of every agent tuned on this environment with the same fresh
+    seeds and episodes (and this study's untuned ``tune.baseline``), as a Markdown table and
+    a figure on the parent run (``comparison/``)."""
+    rows = _other_agents(study, summary["evaluation"])
+    mine = {**summary["evaluation"], "agent": study.agent, "study": study.conf.tune.study}
+    rows = sorted([mine, *rows], key=lambda r: r["agent"])
+    if "baseline" in summary:
+        rows.append({**summary["baseline"], "agent": f"{summary['baseline']['agent']} (untuned)",
+                     "study": study.conf.tune.study})  # fmt: skip
+    env = study.conf.env
+    table = comparison_table(rows, env.solve_threshold, study.episodes)
+    with tempfile.TemporaryDirectory() as tmp:
+        (Path(tmp) / "comparison.md").write_text(table + "\n")
+        _figure(rows, env, Path(tmp) / "comparison.png")
+        study.tracker.client.log_artifacts(study.parent, tmp, "comparison")
+    return {"env": env.id, "table": table, "rows": [r["agent"] for r in rows]}
+
+
+def _other_agents(study: Any, mine: dict[str, Any]) -> list[dict[str, Any]]:
+    """The latest FINISHED evaluation of each other agent's study of this environment on the
+    same seeds and episodes, read back from the store."""
+    client, conf = study.tracker.client, study.conf
+    seeds = f"{mine['seeds'][0]}-{mine['seeds'][-1]}"
+    found = client.search_runs(
+        [study.tracker.experiment_id],
+        filter_string=(
+            f"tags.kind = 'evaluation' and tags.env = '{conf.env.name}' and "
+            f"tags.seeds = '{seeds}' and tags.episodes = '{study.episodes}' and "
+            "attributes.status = 'FINISHED'"
+        ),  # fmt: skip
+        order_by=["attributes.start_time DESC"],
+    )
+    rows: dict[str, dict[str, Any]] = {}
+    for run in found:
+        agent = run.data.tags.get("agent", "")
+        if agent == study.agent or agent in rows or "baseline" in run.info.run_name:
+            continue
+        with tempfile.TemporaryDirectory() as tmp:
+            path = client.download_artifacts(run.info.run_id, RETURNS, tmp)
+            curves = {int(k): v for k, v in json.loads(Path(path).read_text()).items()}
+        row = summarise(agent, curves, study.episodes, conf.env.solve_threshold)
+        rows[agent] = {**row, "study": run.data.tags.get("study", ""), "seeds": sorted(curves)}
+    return list(rows.values())
+
+
+def comparison_table(rows: list[dict[str, Any]], threshold: float | None, episodes: int) -> str:
+    """Markdown: one row per agent, and whether each design reaches Double DQN's final score
+    minus one standard deviation on the same seeds."""
+    head = (
+        f"| agent | study | final score (mean ± std, {len(rows[0]['finals'])} seeds) | "
+        f"solve episode (median) | seeds ≥ {threshold} | J (area, {episodes} episodes) |"
+    )
+    lines = [head, "|---|---|---|---|---|---|"]
+    for r in rows:
+        solve = "n/a" if r["solve_median"] is None else f"{r['solve_median']:.0f}"
+        lines.append(f"| {r['agent']} | {r['study']} | {r['final_score']:.2f} ± "
+                     f"{r['final_std']:.2f} | {solve} | {r['solved']}/{len(r['finals'])} | "
+                     f"{r['objective']:.2f} |")  # fmt: skip
+    base = next((r for r in rows if r["agent"] == "ddqn"), None)
+    if base is not None:
+        bar = base["final_score"] - base["final_std"]
+        for r in rows:
+            if r["agent"] != "ddqn":
+                verdict = "reaches" if r["final_score"] >= bar else "falls short of"
+                lines.append(f"\n{r['agent']} {verdict} Double DQN's final score minus one std "
+                             f"({bar:.2f}) by {r['final_score'] - bar:+.2f}.")  # fmt: skip
+    return "\n".join(lines)
+
+
+def _figure(rows: list[dict[str, Any]], env: Any, out: Path) -> None:
+    """Mean MA100 over the seeds with ± one std, one line per agent."""
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for r in rows:
+        if not r["curve"]:
+            continue
+        x = np.arange(1, len(r["curve"]) + 1)
+        mean, std = np.asarray(r["curve"]), np.asarray(r["curve_std"])
+        ax.plot(x, mean, label=f"{r['agent']} ({r['final_score']:.1f} ± {r['final_std']:.1f})")
+        ax.fill_between(x, mean - std, mean + std, alpha=0.2)
+    if env.solve_threshold is not None:
+        ax.axhline(env.solve_threshold, color="grey", ls=":", lw=1)
+    ax.set_xlabel("episode")
+    ax.set_ylabel("return, 100-episode mean (mean ± std over seeds)")
+    ax.set_title(f"{env.id}: tuned agents on fresh seeds")
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    plt.close(fig)

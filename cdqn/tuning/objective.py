@@ -1,0 +1,56 @@
+"""The study's objective: the area under a population's learning curves.
+
+    J = (1/K) Σ_k (1/N) Σ_{e=1..N} MA100_k(e),   MA100_k(e) = mean(R_k[max(1, e−99) .. e]),
+
+the average moving-average return over training: it rewards learning fast (early episodes
+count) and well (late ones too).  A member that diverges keeps its lowest return for its
+missing episodes.  J_n, the same over the first n episodes, is the intermediate value the
+pruner compares (:mod:`cdqn.tuning.pruner`)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+
+def ma100(returns: list[float]) -> np.ndarray:
+    """MA100(e) = mean of the returns of episodes max(1, e−99) … e."""
+    r = np.asarray(returns, float)
+    c = np.concatenate([[0.0], np.cumsum(r)])
+    e = np.arange(1, len(r) + 1)
+    lo = np.maximum(0, e - 100)
+    return (c[e] - c[lo]) / (e - lo)
+
+
+def padded(returns: list[float], n: int, failed: bool) -> list[float] | None:
+    """The first ``n`` returns of a member; a member that failed keeps its lowest return for
+    its missing episodes; None while a running member has not reached ``n``."""
+    if len(returns) >= n:
+        return list(returns[:n])
+    if failed and returns:
+        return list(returns) + [min(returns)] * (n - len(returns))
+    return None
+
+
+def area(curves: list[list[float]]) -> float:
+    """Mean over members of the mean of MA100 over the episodes given (module docstring)."""
+    return float(np.mean([ma100(r).mean() for r in curves]))
+
+
+class Progress:
+    """Returns of a population's members as they arrive, and its intermediate values."""
+
+    def __init__(self, seeds: list[int]) -> None:
+        self.returns: dict[int, list[float]] = {s: [] for s in seeds}
+        self.failed: set[int] = set()
+
+    def observe(self, member: Any) -> None:
+        self.returns[member.seed] = member.returns
+
+    def value_at(self, n: int) -> float | None:
+        """J over the first ``n`` episodes once every member has them (or has failed)."""
+        curves = [padded(r, n, s in self.failed) for s, r in self.returns.items()]
+        if any(c is None for c in curves):
+            return None
+        return area(curves)  # type: ignore[arg-type]

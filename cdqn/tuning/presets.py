@@ -1,0 +1,63 @@
+"""The preset a study writes for its best trial: what ``python -m cdqn.train`` needs to
+train that agent again as it was tuned."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+ENV_KEYS = ("name", "id", "kwargs", "max_episode_steps", "obs_indices", "normalize",
+            "normalize_scale", "rbf_centres", "rbf_width", "solve_threshold", "eps_dec",
+            "eps_schedule")  # fmt: skip
+"""The environment settings a preset carries (cap, threshold, kwargs, observation maps,
+exploration): a preset trains the environment it was tuned on, as it was tuned."""
+TRAIN_KEYS = ("lr", "discount", "eps_start", "eps_end", "eps_dec", "eps_schedule")
+"""The training settings a preset carries."""
+DDQN_KEYS = ("train_freq", "batch_size", "buffer_size", "learning_starts", "discount")
+"""Double DQN's controller settings a preset carries."""
+
+
+def write_preset(cfg: DictConfig, name: str, folder: Path, best: Any, tune: Any) -> Path:
+    """``<folder>/weights/<name>.yaml``: the best trial's configuration as a weights preset in
+    Hydra's global package, so that ``weights=<name>`` sets, besides the ``weights`` group,
+    the environment (id, kwargs, cap, threshold, observation maps, exploration), α and, for
+    Double DQN, its controller settings; a controlled agent's preset keeps the NTK box its
+    design was certified on (``controller.synthesis.ntk_bounds=config``).  ``extra.tuned``
+    records the study, its budget and its search space."""
+    plain = OmegaConf.to_container(cfg, resolve=True)
+    assert isinstance(plain, dict)
+    weights = dict(plain["weights"], name=name)
+    env = {k: plain["env"][k] for k in ENV_KEYS if k in plain["env"]}
+    train = {k: plain["train"][k] for k in TRAIN_KEYS}
+    controller: dict[str, Any] = {}
+    agent = str(plain["controller"]["name"])
+    if agent == "ddqn":
+        controller = {k: plain["controller"][k] for k in DDQN_KEYS}
+    else:
+        controller = {"synthesis": {"ntk_bounds": plain["controller"]["synthesis"]["ntk_bounds"]}}
+    tuned = {
+        "study": tune.study, "agent": agent, "trial": best.number, "objective": best.value,
+        "budget": {"trials": tune.trials, "seeds": tune.seeds, "first_seed": tune.seed,
+                   "episodes": int(plain["train"]["episodes"])},
+        "space": {k: {f: v for f, v in asdict(p).items() if v not in (None, False)}
+                  for k, p in tune.space.items()},
+        "specification": best.params,
+    }  # fmt: skip
+    preset = {"weights": weights, "env": env, "train": train, "controller": controller,
+              "extra": {"tuned": tuned}}  # fmt: skip
+    out = folder / "weights" / f"{name}.yaml"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    header = [
+        "# @package _global_",
+        f"# Written by python -m cdqn.tune (study {tune.study!r}, trial {best.number}, "
+        f"objective {best.value:.4g}) for {agent} on {env['id']}.",
+        f"# Train with: python -m cdqn.train controller={agent} weights={name} "
+        f"hydra.searchpath=[file://{folder.resolve()}]",
+        f"# Specification: {json.dumps(best.params)}",
+    ]
+    out.write_text("\n".join(header) + "\n" + OmegaConf.to_yaml(OmegaConf.create(preset)))
+    return out

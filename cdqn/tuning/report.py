@@ -1,0 +1,98 @@
+"""What a study shows: the design record of a trial, the study's plots, the printed summary."""
+
+from __future__ import annotations
+
+import json
+import logging
+import tempfile
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger("cdqn.tune")
+
+
+def log_design(tracker: Any, run_id: str, setup: Any) -> None:
+    """The design's record, report and certificate on run ``run_id`` (tags ``certificate``,
+    ``design_source``; metrics worst pole, gains, learning-target ranges)."""
+    rec = setup.design or {}
+    tracker.client.log_dict(run_id, rec, "design/controller.json")
+    if setup.artifacts is not None and (Path(setup.artifacts) / "report.txt").is_file():
+        tracker.client.log_artifact(run_id, str(Path(setup.artifacts) / "report.txt"), "design")
+    cert = rec.get("certificate") or {}
+    lt = rec.get("learning_target") or {}
+    tags = {"certificate": "PASSED" if cert.get("passed", True) else "FAILED",
+            "design_source": setup.source}  # fmt: skip
+    for k, v in tags.items():
+        tracker.client.set_tag(run_id, k, str(v))
+    values = {"worst_pole": cert.get("worst_pole"), "max_step_gain": lt.get("max_step_gain")}
+    for i, k in enumerate(("k1", "k2", "k3")):
+        if rec.get("gains"):
+            values[k] = rec["gains"][i]
+    for key in ("gamma_eff", "step_scale"):
+        if isinstance(lt.get(key), list) and len(lt[key]) == 2:
+            values[f"{key}_lo"], values[f"{key}_hi"] = lt[key]
+    tracker.metrics(run_id, {k: v for k, v in values.items() if v is not None})
+
+
+def plot_study(tracker: Any, parent: str, study: Any) -> None:
+    """Optimisation history and parameter importances (optuna.visualization.matplotlib) and
+    the trials as JSON, on the parent run."""
+    import warnings  # noqa: PLC0415
+
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+    from optuna.visualization import matplotlib as ovm  # noqa: PLC0415
+
+    with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # optuna marks these plots experimental
+        for name, plot in (("optimization_history", ovm.plot_optimization_history),
+                           ("param_importances", ovm.plot_param_importances)):  # fmt: skip
+            try:
+                ax = plot(study)
+            except (ValueError, RuntimeError) as err:  # too few complete trials
+                log.info("no %s plot: %s", name, err)
+                continue
+            fig = ax.figure if hasattr(ax, "figure") else ax.flat[0].figure
+            fig.set_size_inches(8, 5)
+            fig.tight_layout()
+            fig.savefig(Path(tmp) / f"{name}.png", dpi=120)
+            plt.close(fig)
+        rows = [{"number": tr.number, "state": tr.state.name, "value": tr.value,
+                 "status": tr.user_attrs.get("status"), "reason": tr.user_attrs.get("reason"),
+                 **tr.params} for tr in study.get_trials(deepcopy=False)]  # fmt: skip
+        (Path(tmp) / "trials.json").write_text(json.dumps(rows, indent=1, default=str))
+        tracker.client.log_artifacts(parent, tmp, "study")
+
+
+def summary_text(s: dict[str, Any]) -> str:
+    """The printed summary of a study."""
+    if "counts" not in s:  # a worker other than 0
+        return (f"study {s['study']}, worker {s['worker']}: ran trials {s['trials_run']} in "
+                f"{s['wall_seconds']:.0f} s; MLflow parent run {s['parent_run']}; worker 0 "
+                "writes the preset and the evaluation")  # fmt: skip
+    c = s["counts"]
+    lines = [
+        f"study {s['study']}: {sum(c.values())} trials ({c['complete']} complete, "
+        f"{c['pruned']} pruned, {c['infeasible']} infeasible, {c['failed']} failed) of "
+        f"{s.get('episodes', '?')} episodes per member in {s['wall_seconds']:.0f} s; MLflow "
+        f"parent run {s['parent_run']}"
+    ]
+    if "best_trial" in s:
+        lines.append(f"best trial {s['best_trial']}: J = {s['best_value']:.2f} (final MA100 "
+                     f"{s['best_final_score']:.1f}), {json.dumps(s['best_params'])}")  # fmt: skip
+        lines.append(f"preset: {s['preset']}")
+    for key in ("evaluation", "baseline"):
+        if key in s:
+            e = s[key]
+            lines.append(f"{key} on fresh seeds {e['seeds'][0]}..{e['seeds'][-1]}: J = "
+                         f"{e['objective']:.2f}, final MA100 {e['final_score']:.1f} ± "
+                         f"{e.get('final_std', float('nan')):.1f}, {e['diverged']} diverged "
+                         f"({e['seconds']:.0f} s)")  # fmt: skip
+    if s.get("comparison"):
+        lines += [f"tuned agents on {s['comparison']['env']}, fresh seeds:",
+                  s["comparison"]["table"]]  # fmt: skip
+    if "design_report" in s:
+        lines += ["design of the best specification:", s["design_report"].rstrip()]
+    return "\n".join(lines)

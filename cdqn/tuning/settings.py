@@ -1,0 +1,169 @@
+"""The schema of ``python -m cdqn.tune`` (``tune.*``) and its checks."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import OmegaConf
+
+from cdqn.config import TARGET_CONTROLLERS, Config, ConfigError, register_configs, validate
+
+TUNABLE = ("h2", "hinf", "hinf_f", "ddqn")
+"""Agents a study can tune: the three synthesised designs and Double DQN."""
+
+
+@dataclass
+class ParamSpec:
+    """One dimension of the search space.
+
+    ``choices``: a categorical value at ``path``.  ``width``: the centre c of a range is
+    sampled in [low, high] (or from ``choices``) and ``path`` becomes
+    [c − width/2, c + width/2] (γ_eff, 1 + k1).
+    ``scale``: a factor f in [low, high] multiplies every number at ``path`` (a weight's
+    magnitude, e.g. ``weights.{controller}.w_p.num``).  Otherwise a number in [low, high]
+    (``integer``: a whole one).  ``{controller}`` in ``path`` is the controller's name.
+    ``when``: the dimension is sampled only in trials whose other dimensions take these
+    values (``{eps_schedule: episode}``); other trials leave ``path`` as configured."""
+
+    path: str = "???"
+    low: float | None = None
+    high: float | None = None
+    log: bool = False
+    """Sample on a log scale."""
+    width: float | None = None
+    scale: bool = False
+    integer: bool = False
+    choices: list[Any] | None = None
+    when: dict[str, Any] | None = None
+
+
+@dataclass
+class PrunerConfig:
+    kind: str = "median"
+    """median (:class:`EpisodeMedianPruner`: J over the episodes so far against the median of
+    the complete trials' at the same episode) or none."""
+    startup_trials: int = 3
+    """Trials that complete before any is pruned."""
+    warmup_episodes: int = 50
+    """Episodes before a trial can be pruned."""
+    interval: int = 25
+    """Episodes between the intermediate values reported to Optuna."""
+
+
+@dataclass
+class TuneSettings:
+    study: str = "cdqn"
+    """Optuna study name (also the MLflow parent run's name)."""
+    storage: str = "sqlite:///optuna.db"
+    """Optuna storage; an SQLite file survives a restart and the study continues."""
+    trials: int = 20
+    """Trials of the study in all (a resumed study runs the missing ones)."""
+    seeds: int = 3
+    """Population size K of a trial."""
+    seed: int = 100
+    """First seed of every trial's population (seed … seed+K−1, the same for all trials)."""
+    episodes: int | None = None
+    """Training episodes per member (trials and evaluation); null: ``steps`` divided by the
+    environment's episode cap, within [min_episodes, max_episodes]."""
+    steps: int = 300_000
+    """With episodes null: the environment steps per member the episode budget is sized on
+    (episodes at the cap), so that a study's cost follows the environment's own scale."""
+    min_episodes: int = 100
+    """With episodes null: the fewest episodes per member."""
+    max_episodes: int = 2000
+    """With episodes null: the most episodes per member."""
+    eval_seeds: int = 10
+    """Fresh seeds of the final evaluation of the best specification (0: none)."""
+    eval_seed: int = 1000
+    """First seed of the evaluation; its seeds must not overlap the trials' seeds."""
+    baseline: str | None = None
+    """A controller (e.g. ddqn) trained, untuned, on the evaluation seeds beside the best
+    design."""
+    sampler_seed: int = 0
+    """Seed of Optuna's TPE sampler."""
+    worker: int = 0
+    """Index of this process among the study's parallel workers (``-m tune.worker=0,1``);
+    worker 0 waits for the others' trials and writes the plots, preset and evaluation."""
+    pruner: PrunerConfig = field(default_factory=PrunerConfig)
+    space: dict[str, ParamSpec] = field(default_factory=dict)
+    """The search space, name → :class:`ParamSpec` (conf/space/<controller>.yaml)."""
+    preset: str | None = None
+    """Name of the weights preset written for the best trial (null: tuned_<study>)."""
+    preset_dir: str = "presets"
+    """Folder of user presets; the preset goes to <preset_dir>/weights/<name>.yaml."""
+
+
+@dataclass
+class TuneConfig(Config):
+    tune: TuneSettings = field(default_factory=TuneSettings)
+
+
+register_configs()
+ConfigStore.instance().store(name="base_tune", node=TuneConfig)
+
+
+def episode_budget(t: TuneSettings, cap: int | None) -> int:
+    """Episodes per member: ``tune.episodes``, else ``tune.steps / cap`` clamped to
+    ``[tune.min_episodes, tune.max_episodes]`` (``cap``: the environment's episode cap)."""
+    if t.episodes is not None:
+        return t.episodes
+    if not cap:
+        return t.max_episodes
+    return int(min(t.max_episodes, max(t.min_episodes, t.steps // cap)))
+
+
+def validate_tune(conf: TuneConfig) -> None:
+    """The training configuration's rules and the study's: one line per problem."""
+    validate(conf)
+    t = conf.tune
+    errors: list[str] = []
+    if conf.controller.name not in TUNABLE:
+        allowed = ", ".join(TUNABLE)
+        errors.append(f"controller={conf.controller.name}: tune searches {allowed}")
+    if conf.controller.name in TARGET_CONTROLLERS and conf.controller.design != "synthesize":
+        errors.append(
+            f"controller.design={conf.controller.design}: tune needs controller.design=synthesize"
+        )
+    for key, value, lo in (("trials", t.trials, 1), ("seeds", t.seeds, 1),
+                           ("episodes", t.episodes if t.episodes is not None else 1, 1),
+                           ("steps", t.steps, 1), ("min_episodes", t.min_episodes, 1),
+                           ("max_episodes", t.max_episodes, t.min_episodes),
+                           ("eval_seeds", t.eval_seeds, 0),
+                           ("pruner.interval", t.pruner.interval, 1),
+                           ("worker", t.worker, 0)):  # fmt: skip
+        if value < lo:
+            errors.append(f"tune.{key}={value}: must be an integer >= {lo}")
+    if t.pruner.kind not in ("median", "none"):
+        errors.append(f"tune.pruner.kind={t.pruner.kind}: allowed median, none")
+    trial = set(range(t.seed, t.seed + t.seeds))
+    fresh = set(range(t.eval_seed, t.eval_seed + t.eval_seeds))
+    if trial & fresh:
+        last = t.eval_seed + t.eval_seeds - 1
+        errors.append(
+            f"tune.eval_seed={t.eval_seed}: evaluation seeds {t.eval_seed}..{last}"
+            f" overlap the trials' seeds {t.seed}..{t.seed + t.seeds - 1}; choose fresh seeds"
+        )
+    if not t.space:
+        errors.append("tune.space: empty; give at least one dimension")
+    for name, p in t.space.items():
+        errors += [f"tune.space.{name}: {e}" for e in _spec_errors(p, conf)]
+        for other in p.when or {}:
+            if other not in t.space:
+                errors.append(f"tune.space.{name}.when: {other!r} is no dimension of tune.space")
+    if errors:
+        raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(errors))
+
+
+def _spec_errors(p: ParamSpec, conf: Config) -> list[str]:
+    path = p.path.format(controller=conf.controller.name)
+    if OmegaConf.select(OmegaConf.structured(conf), path, default="__missing__") == "__missing__":
+        return [f"path={p.path!r} names no configuration key"]
+    if p.choices is not None:
+        return [] if p.choices else ["choices=[]: give at least one"]
+    if p.low is None or p.high is None or not p.low < p.high:
+        return [f"low={p.low}, high={p.high}: need numbers with low < high"]
+    if p.log and p.low <= 0:
+        return [f"low={p.low}: a log scale needs low > 0"]
+    return []

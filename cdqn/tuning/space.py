@@ -1,0 +1,93 @@
+"""The search space: sampling a specification and writing it into a configuration."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import logging
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf, read_write
+
+from cdqn.config import TARGET_FIELDS, target_key
+from cdqn.tuning.settings import ParamSpec
+
+log = logging.getLogger("cdqn.tune")
+
+RBF_PATH = "env.rbf_centres"
+"""The dimension whose choices depend on the observation (:func:`fit_to_observation`)."""
+
+
+def sample(trial: Any, space: dict[str, ParamSpec]) -> dict[str, Any]:
+    """The trial's specification: one value per dimension whose ``when`` holds (Optuna's
+    define-by-run suggest API; dimensions are sampled in the order of ``space``)."""
+    out: dict[str, Any] = {}
+    for name, p in space.items():
+        if p.when and any(out.get(k, _ABSENT) != v for k, v in p.when.items()):
+            continue
+        if p.choices is not None:
+            out[name] = trial.suggest_categorical(name, list(p.choices))
+        elif p.integer:
+            out[name] = trial.suggest_int(name, int(p.low), int(p.high), log=p.log)  # type: ignore[arg-type]
+        else:
+            out[name] = trial.suggest_float(name, float(p.low), float(p.high), log=p.log)  # type: ignore[arg-type]
+    return out
+
+
+_ABSENT = object()
+
+
+def apply(cfg: DictConfig, space: dict[str, ParamSpec], params: dict[str, Any]) -> DictConfig:
+    """``cfg`` with the specification ``params`` written into it (:class:`ParamSpec`)."""
+    out = copy.deepcopy(cfg)
+    name = str(cfg.controller.name)
+    with read_write(out):
+        for key, value in params.items():
+            p = space[key]
+            path = _own_target_path(p.path.format(controller=name), out.weights, name)
+            if p.width is not None:
+                value = [float(value) - p.width / 2, float(value) + p.width / 2]
+            elif p.choices is None and p.scale:
+                node = OmegaConf.select(out, path)
+                plain = OmegaConf.to_container(node) if OmegaConf.is_config(node) else node
+                value = _scaled(plain, float(value))
+            OmegaConf.update(out, path, value, merge=False)
+    return out
+
+
+def fit_to_observation(
+    space: dict[str, ParamSpec], bounded: bool, n_features: int, max_features: int
+) -> dict[str, ParamSpec]:
+    """``space`` with the radial-basis dimension (``env.rbf_centres``) kept to the choices the
+    observation allows: none unless every observed feature is bounded, and ``n`` centres per
+    feature only where ``n^d <= max_features``.  A dimension left with one choice is dropped
+    (the configuration's value stands)."""
+    out = dict(space)
+    for name, p in space.items():
+        if p.path != RBF_PATH or p.choices is None:
+            continue
+        allowed = [c for c in p.choices
+                   if c is None or (bounded and int(c) ** n_features <= max_features)]  # fmt: skip
+        if len(allowed) < len(p.choices):
+            log.info("tune.space.%s: choices %s (the observation allows %s)", name,
+                     list(p.choices), allowed)  # fmt: skip
+        if len(allowed) <= 1:
+            del out[name]
+        else:
+            out[name] = dataclasses.replace(p, choices=allowed)
+    return out
+
+
+def _own_target_path(path: str, weights: Any, controller: str) -> str:
+    """``weights.target.<range>`` names that range of the tuned controller's learning target:
+    ``weights.controller_target.<controller>.<range>`` where the environment sets it."""
+    head = "weights.target."
+    if not path.startswith(head) or path[len(head) :] not in TARGET_FIELDS:
+        return path
+    return target_key(weights, controller, path[len(head) :])
+
+
+def _scaled(value: Any, factor: float) -> Any:
+    if isinstance(value, list):
+        return [_scaled(v, factor) for v in value]
+    return float(value) * factor

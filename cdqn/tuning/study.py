@@ -1,0 +1,293 @@
+"""One ``python -m cdqn.tune`` invocation: the study, its trials and the evaluation.
+
+A study tunes one agent on one environment: a synthesised design (``h2``, ``hinf``,
+``hinf_f``) or Double DQN (``ddqn``).  Both are offered the same shared dimensions
+(observation maps, exploration; ``conf/space/shared.yaml``), the same trials, seeds and
+episodes; each adds its own (a design's learning target and weights, α and integrator
+reset; Double DQN's α, target period and minibatch frequency).  A trial of a design
+synthesises and certifies it before anything trains (:mod:`cdqn.tuning.trial`)."""
+
+from __future__ import annotations
+
+import copy
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf, read_write
+
+from cdqn.config import TARGET_CONTROLLERS, Config, ConfigError, resolve_tracking_uri
+from cdqn.training.interrupt import GracefulStop
+from cdqn.tuning.evaluation import evaluate, write_comparison
+from cdqn.tuning.presets import write_preset
+from cdqn.tuning.report import log_design, plot_study
+from cdqn.tuning.settings import TuneConfig, episode_budget, validate_tune
+from cdqn.tuning.space import apply, fit_to_observation
+from cdqn.tuning.storage import WORKER_SEED_STRIDE, StudyLock, open_storage
+from cdqn.tuning.tracker import Tracker
+from cdqn.tuning.trial import STATUSES, run_trials
+
+log = logging.getLogger("cdqn.tune")
+CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+
+
+class Study:
+    """The study of ``cfg`` (a composed ``conf/tune.yaml``)."""
+
+    def __init__(self, cfg: DictConfig) -> None:
+        from cdqn.envs import adopt_env_id  # noqa: PLC0415 (gymnasium only when needed)
+
+        cfg = copy.deepcopy(cfg)
+        if (adopted := adopt_env_id(cfg)) is not None:
+            log.info("%s", adopted)
+        self.conf: TuneConfig = OmegaConf.to_object(cfg)  # type: ignore[assignment]
+        validate_tune(self.conf)
+        self.cfg = cfg
+        t = self.conf.tune
+        self.agent = self.conf.controller.name
+        self.designed = self.agent in TARGET_CONTROLLERS
+        self.episodes = episode_budget(t, self.conf.env.max_episode_steps)
+        self.space = self._offered(t.space)
+        self.uri = resolve_tracking_uri(self.conf.tracking.uri)
+        container = OmegaConf.to_container(cfg, resolve=True)
+        container.pop("tune")  # type: ignore[union-attr]
+        base = OmegaConf.merge(OmegaConf.structured(Config), container)
+        with read_write(base):
+            base.train.episodes = self.episodes
+            base.train.progress = False
+            base.train.population = t.seeds
+            base.seed = t.seed
+            base.tracking.uri = self.uri
+        self.base = base
+        self.boxes: dict[str, tuple[list[float], list[float]]] = {}
+        self.stop = GracefulStop()
+        """SIGINT/SIGTERM outside a population's training (synthesis, Optuna's bookkeeping):
+        the study stops before the next trial trains; while a population trains, its own
+        handler stops it at the episode boundary."""
+
+    def _offered(self, space: dict[str, Any]) -> dict[str, Any]:
+        """The search space as this environment's observation allows it."""
+        import numpy as np  # noqa: PLC0415
+
+        from cdqn.envs import RadialFeatures, make_env  # noqa: PLC0415
+
+        env_cfg = copy.deepcopy(self.conf.env)
+        env_cfg.rbf_centres = None
+        env = make_env(env_cfg)
+        box = env.observation_space
+        bounded = bool(np.all(np.isfinite(box.low)) and np.all(np.isfinite(box.high)))
+        env.close()
+        return fit_to_observation(space, bounded, int(box.shape[0]), RadialFeatures.MAX_FEATURES)
+
+    # the configuration of a specification -----------------------------------------
+
+    def specified(self, params: dict[str, Any], seed: int, population: int) -> DictConfig:
+        """The training configuration of ``params``.  For a design whose NTK box is measured,
+        the box is measured once per observation map and quantile pair (on the network of
+        ``tune.seed``) and written into theta_bounds, so that every member, the preset and a
+        later ``cdqn.train`` run use the same design."""
+        cfg = apply(self.base, self.space, params)
+        with read_write(cfg):
+            cfg.seed = seed
+            cfg.train.population = population
+            syn = cfg.controller.synthesis
+            if self.designed and syn.ntk_bounds == "measured":
+                key = OmegaConf.to_yaml({"env": cfg.env, "net": cfg.network, "q": syn.quantiles})
+                if key not in self.boxes:
+                    self.boxes[key] = self._measure(cfg)
+                theta1, ratio = self.boxes[key]
+                cfg.weights.theta_bounds.theta1 = theta1
+                cfg.weights.theta_bounds.ratio = ratio
+                cfg.weights.theta_bounds.nominal = None
+                syn.ntk_bounds = "config"
+        return cfg
+
+    def _measure(self, cfg: DictConfig) -> tuple[list[float], list[float]]:
+        import torch  # noqa: PLC0415
+
+        from cdqn.envs import env_sizes, make_env  # noqa: PLC0415
+        from cdqn.network import NetworkSpec, QNetwork  # noqa: PLC0415
+        from cdqn.ntk_bounds import measured_box  # noqa: PLC0415
+
+        conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
+        conf.seed = self.conf.tune.seed
+        env = make_env(conf.env)
+        n_obs, n_actions = env_sizes(env)
+        env.close()
+        torch.manual_seed(conf.seed)
+        net = QNetwork(NetworkSpec(n_obs, n_actions, conf.network.width, conf.network.dtype))
+        box = measured_box(conf, net)
+        assert box is not None
+        log.info("measured NTK box: Θ1 ∈ %s, Θ2/Θ1 ∈ %s", list(box.theta1), list(box.ratio))
+        return [float(v) for v in box.theta1], [float(v) for v in box.ratio]
+
+    def design(self, cfg: DictConfig) -> Any:
+        """Synthesise and certify (raises :class:`DesignError` with the reason); None for
+        Double DQN, which has no design."""
+        from cdqn.config import validate  # noqa: PLC0415
+        from cdqn.control.factory import make_controller  # noqa: PLC0415
+
+        if not self.designed:
+            return None
+        conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
+        validate(conf)
+        return make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
+
+    # the study ---------------------------------------------------------------------
+
+    def run(self) -> dict[str, Any]:
+        import optuna  # noqa: PLC0415
+        from optuna.trial import TrialState  # noqa: PLC0415
+
+        from cdqn.tuning.pruner import make_pruner  # noqa: PLC0415
+
+        t = self.conf.tune
+        lock = StudyLock(t.storage)
+        with lock:  # workers starting at once: one creates the storage, study and parent run
+            self.tracker = Tracker(self.uri, self.conf.tracking.experiment)
+            study = optuna.create_study(
+                study_name=t.study,
+                storage=open_storage(t.storage),
+                direction="maximize",
+                pruner=make_pruner(t.pruner),
+                load_if_exists=True,
+            )
+            self.parent = self.tracker.parent(study, self.conf, self.cfg)
+            self.tracker.client.set_tag(self.parent, "episodes", str(self.episodes))
+            _retry_interrupted(study)
+            done = sum(tr.state in (TrialState.COMPLETE, TrialState.PRUNED)
+                       for tr in study.get_trials(deepcopy=False))  # fmt: skip
+            n_trials = len(study.trials)
+        # a restarted study continues the sampler's stream instead of repeating its start;
+        # workers draw distinct streams, and the constant liar keeps them off each other's
+        # running trials
+        study.sampler = optuna.samplers.TPESampler(
+            seed=t.sampler_seed + n_trials + WORKER_SEED_STRIDE * t.worker, constant_liar=True
+        )
+        log.info("study %s (%s on %s, %d episodes per member), worker %d (MLflow parent run "
+                 "%s): %d of %d trials done", t.study, self.agent, self.conf.env.id,
+                 self.episodes, t.worker, self.parent, done, t.trials)  # fmt: skip
+        t0 = time.perf_counter()
+        try:
+            with self.stop:
+                ran = run_trials(self, study, lock)
+        except KeyboardInterrupt:
+            self.tracker.client.set_tag(self.parent, "interrupted", "true")
+            self.tracker.client.set_terminated(self.parent, "KILLED")
+            raise
+        wall = time.perf_counter() - t0
+        if t.worker != 0:
+            log.info("worker %d ran trials %s; worker 0 closes the study", t.worker, ran)
+            return {"study": t.study, "worker": t.worker, "trials_run": ran,
+                    "wall_seconds": wall, "parent_run": self.parent}  # fmt: skip
+        summary = self.close(study, wall)
+        summary["trials_run"] = ran
+        return summary
+
+    def close(self, study: Any, wall: float) -> dict[str, Any]:
+        """Count the trials, write the plots and the best trial's preset, and evaluate it on
+        fresh seeds (beside the other agents' studies of this environment)."""
+        t = self.conf.tune
+        count = _counts(study)
+        metrics: dict[str, float] = {f"trials_{k}": float(v) for k, v in count.items()}
+        metrics["wall_seconds"] = wall
+        summary: dict[str, Any] = {"study": t.study, "agent": self.agent, "counts": count,
+                                   "wall_seconds": wall, "parent_run": self.parent,
+                                   "episodes": self.episodes}  # fmt: skip
+        plot_study(self.tracker, self.parent, study)
+        client = self.tracker.client
+        if count["complete"] == 0:
+            self.tracker.metrics(self.parent, metrics)
+            client.set_tag(self.parent, "best", "none: no trial completed")
+            client.set_terminated(self.parent, "FINISHED")
+            log.warning("study %s: no trial completed; no preset written", t.study)
+            return summary
+        best = study.best_trial
+        metrics["best_value"] = best.value
+        metrics["best_final_score"] = best.user_attrs.get("final_score", float("nan"))
+        client.set_tag(self.parent, "best_trial", str(best.number))
+        self.tracker.log_params(self.parent, {f"best.{k}": v for k, v in best.params.items()})
+        cfg = self.specified(best.params, t.eval_seed, max(1, t.eval_seeds))
+        name = t.preset or f"tuned_{t.study}"
+        preset = write_preset(cfg, name, Path(t.preset_dir), best, t)
+        client.log_artifact(self.parent, str(preset), "preset")
+        summary |= {"best_trial": best.number, "best_value": best.value,
+                    "best_params": best.params, "preset": str(preset),
+                    "best_final_score": metrics["best_final_score"]}  # fmt: skip
+        setup = self.design(cfg)
+        if setup is not None:
+            log_design(self.tracker, self.parent, setup)
+            if setup.artifacts is not None and (Path(setup.artifacts) / "report.txt").is_file():
+                summary["design_report"] = (Path(setup.artifacts) / "report.txt").read_text()
+        if t.eval_seeds > 0:
+            self._evaluate(cfg, summary, metrics)
+        self.tracker.metrics(self.parent, metrics)
+        client.set_terminated(self.parent, "FINISHED")
+        return summary
+
+    def _evaluate(self, cfg: DictConfig, summary: dict[str, Any], metrics: dict) -> None:
+        """The best specification (and ``tune.baseline``) on the fresh seeds, and the
+        comparison with the other agents tuned on this environment."""
+        t = self.conf.tune
+        summary["evaluation"] = evaluate(self, cfg, "evaluation")
+        metrics["eval_objective"] = summary["evaluation"]["objective"]
+        metrics["eval_final_score"] = summary["evaluation"]["final_score"]
+        if t.baseline:
+            base = _with_controller(cfg, t.baseline)
+            summary["baseline"] = evaluate(self, base, f"baseline-{t.baseline}")
+            metrics["baseline_objective"] = summary["baseline"]["objective"]
+            metrics["baseline_final_score"] = summary["baseline"]["final_score"]
+        summary["comparison"] = write_comparison(self, summary)
+
+
+def _retry_interrupted(study: Any) -> None:
+    """A trial a signal cut short is tried again with its specification (a killed process:
+    Optuna's heartbeat fails it after the grace period and retries it)."""
+    from optuna.trial import TrialState  # noqa: PLC0415
+
+    retried = list(study.user_attrs.get("retried", []))
+    for tr in study.get_trials(deepcopy=False):
+        interrupted = tr.user_attrs.get("status") in ("interrupted", "failed")
+        if tr.state == TrialState.FAIL and interrupted and tr.number not in retried:
+            retried.append(tr.number)
+            if tr.params:
+                study.enqueue_trial(tr.params)
+    study.set_user_attr("retried", retried)
+
+
+def _counts(study: Any) -> dict[str, int]:
+    """Trials by ``trial_status`` (a retried trial counts once, as its retry)."""
+    from optuna.trial import TrialState  # noqa: PLC0415
+
+    retried = study.user_attrs.get("retried", [])
+    count = {s: 0 for s in STATUSES}
+    for tr in study.get_trials(deepcopy=False):
+        if tr.state == TrialState.COMPLETE:
+            count["complete"] += 1
+        elif tr.state == TrialState.PRUNED:
+            infeasible = tr.user_attrs.get("status") == "infeasible"
+            count["infeasible" if infeasible else "pruned"] += 1
+        elif tr.state == TrialState.FAIL and tr.number not in retried:
+            count["failed"] += 1
+    return count
+
+
+def _with_controller(cfg: DictConfig, name: str) -> DictConfig:
+    """``cfg`` with the controller ``name`` (``tune.baseline``) and its global settings."""
+    out = copy.deepcopy(cfg)
+    path = CONF_DIR / "controller" / f"{name}.yaml"
+    if not path.is_file():
+        raise ConfigError(f"tune.baseline={name}: no conf/controller/{name}.yaml")
+    raw = OmegaConf.load(path)
+    # a controller file in the global package (ddqn.yaml) also sets other groups' keys
+    own = raw.controller if "controller" in raw else raw
+    with read_write(out):
+        out.controller = OmegaConf.merge(
+            OmegaConf.structured(type(OmegaConf.to_object(cfg.controller))), own
+        )
+        if "controller" in raw:
+            for key in raw:
+                if key != "controller":
+                    out[key] = OmegaConf.merge(out[key], raw[key])
+    return out

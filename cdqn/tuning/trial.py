@@ -1,0 +1,206 @@
+"""One trial of a study: sample a specification, certify its design, train a population,
+report J_n to the pruner, record everything in MLflow."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from cdqn.control.errors import DesignError
+from cdqn.tuning.objective import Progress, area, padded
+from cdqn.tuning.report import log_design
+from cdqn.tuning.space import sample
+
+log = logging.getLogger("cdqn.tune")
+STATUSES = ("complete", "pruned", "infeasible", "failed")
+"""``trial_status`` of a trial's MLflow run."""
+WAIT_SECONDS = 2.0
+"""Worker 0 polls the storage this often while other workers' trials run."""
+
+
+def run_trials(study_obj: Any, study: Any, lock: Any) -> list[int]:
+    """Run trials until the study holds ``tune.trials`` complete, pruned or running ones.
+
+    Counting them and creating the next trial (``study.optimize``'s ask) happen under
+    ``lock``, so that workers never start more than ``tune.trials`` in all; the lock is
+    released as soon as the trial exists.  Worker 0 then waits until no trial of another
+    worker runs (a dead worker's trial is failed by the heartbeat and run again here).
+    Returns the numbers of the trials this worker ran."""
+    import optuna  # noqa: PLC0415
+    from optuna.trial import TrialState  # noqa: PLC0415
+
+    t = study_obj.conf.tune
+    claimed = (TrialState.COMPLETE, TrialState.PRUNED, TrialState.RUNNING)
+    ran: list[int] = []
+
+    def objective(trial: Any) -> float:
+        lock.release()
+        ran.append(trial.number)
+        return Trial(study_obj, trial).run()
+
+    attempts, waiting = 0, False
+    while attempts < t.trials:  # at most tune.trials trials per worker (failed ones too)
+        lock.acquire()
+        try:
+            states = [tr.state for tr in study.get_trials(deepcopy=False)]
+            if sum(s in claimed for s in states) >= t.trials:
+                if t.worker == 0 and TrialState.RUNNING in states:
+                    lock.release()
+                    if not waiting:
+                        log.info("worker 0: waiting for the running trials of other workers")
+                        waiting = True
+                    time.sleep(WAIT_SECONDS)
+                    optuna.storages.fail_stale_trials(study)
+                    continue
+                break
+            attempts += 1
+            study.optimize(objective, n_trials=1, catch=(RuntimeError,))
+        finally:
+            lock.release()
+        if study_obj.stop.requested():  # a signal during Optuna's bookkeeping of the trial
+            raise KeyboardInterrupt
+    return ran
+
+
+def train_population(
+    study_obj: Any, cfg: DictConfig, report: Callable[[int, float], bool] | None = None
+) -> tuple[Progress, Any, int | None]:
+    """Train ``cfg``'s population; ``report(n, J_n)`` is called each ``interval`` episodes and
+    returns True to prune.  Returns the progress, the result and the episode at which it was
+    pruned (None: not pruned)."""
+    from cdqn.training.run import run_population  # noqa: PLC0415
+
+    seeds = [int(cfg.seed) + i for i in range(int(cfg.train.population))]
+    prog = Progress(seeds)
+    interval = study_obj.conf.tune.pruner.interval
+    episodes = int(cfg.train.episodes)
+    state: dict[str, Any] = {"next": interval, "pruned": None}
+
+    def observe(member: Any) -> None:
+        if member.status == "FAILED":
+            prog.failed.add(member.seed)
+        prog.observe(member)
+        while report is not None and state["pruned"] is None:
+            n = state["next"]
+            if n > episodes:
+                break
+            value = prog.value_at(n)
+            if value is None:
+                break
+            state["next"] = n + interval
+            if report(n, value):
+                state["pruned"] = n
+
+    result = run_population(
+        cfg, progress=False, observe=observe, should_stop=lambda: state["pruned"] is not None
+    )
+    for s, r in zip(seeds, result.members, strict=False):  # members in seed order
+        if r.status == "FAILED":
+            prog.failed.add(s)
+    return prog, result, state["pruned"]
+
+
+class Trial:
+    """One Optuna trial of ``study_obj`` (:class:`cdqn.tuning.study.Study`)."""
+
+    def __init__(self, study_obj: Any, trial: Any) -> None:
+        self.s, self.trial = study_obj, trial
+        self.tracker = study_obj.tracker
+        self.reported: dict[int, float] = {}
+
+    def run(self) -> float:
+        """The trial's objective J (raises ``optuna.TrialPruned`` when pruned or infeasible)."""
+        t = self.s.conf.tune
+        params = sample(self.trial, self.s.space)
+        self.child = self.tracker.child(
+            self.s.parent, f"trial-{self.trial.number}",
+            {"trial": str(self.trial.number), "study": t.study, "worker": str(t.worker)},
+        )  # fmt: skip
+        self.trial.set_user_attr("mlflow_run", self.child)
+        self.trial.set_user_attr("worker", t.worker)
+        self.tracker.log_params(self.child, params)
+        cfg = self._certified(params)
+        if self.s.stop.requested():  # a signal during the synthesis: do not start training
+            self._end("KILLED", "failed", "interrupted by a signal", status="interrupted")
+            raise KeyboardInterrupt
+        try:
+            prog, result, pruned_at = train_population(self.s, cfg, self._report)
+        except BaseException as err:
+            self._end("KILLED", "failed", f"{type(err).__name__}: {err}", status="failed")
+            raise
+        return self._score(params, prog, result, pruned_at)
+
+    def _certified(self, params: dict[str, Any]) -> DictConfig:
+        """The specification's configuration, its design synthesised and certified first."""
+        import optuna  # noqa: PLC0415
+
+        t = self.s.conf.tune
+        try:
+            cfg = self.s.specified(params, t.seed, t.seeds)
+            spec = OmegaConf.to_container(cfg.weights, resolve=True)
+            self.tracker.client.log_dict(self.child, spec, "spec/weights.yaml")
+            setup = self.s.design(cfg)
+        except DesignError as err:
+            self.trial.set_user_attr("reason", str(err))
+            self._end("FAILED", "infeasible", f"infeasible: {err}", status="infeasible")
+            log.info("trial %d infeasible: %s", self.trial.number, err)
+            raise optuna.TrialPruned(f"infeasible: {err}") from None
+        except BaseException as err:
+            self._end("FAILED", "failed", f"{type(err).__name__}: {err}", status="failed")
+            raise
+        if setup is not None:
+            log_design(self.tracker, self.child, setup)
+        return cfg
+
+    def _report(self, n: int, value: float) -> bool:
+        self.reported[n] = value
+        self.trial.report(value, n)
+        self.tracker.metrics(self.child, {"objective_partial": value}, step=n)
+        return bool(self.trial.should_prune())
+
+    def _end(self, run_status: str, trial_status: str, reason: str | None, status: str) -> None:
+        """End the trial's MLflow run (``run_status``, tags ``trial_status`` and ``reason``)
+        and record ``status`` on the Optuna trial."""
+        self.trial.set_user_attr("status", status)
+        self.tracker.end(self.child, run_status, trial_status, reason)
+
+    def _score(self, params: dict[str, Any], prog: Progress, result: Any,
+               pruned_at: int | None) -> float:  # fmt: skip
+        import optuna  # noqa: PLC0415
+
+        ids = [r.run_id for r in result.members]
+        self.trial.set_user_attr("runs", ids)
+        if result.signum is not None:
+            self.tracker.nest(self.child, ids)
+            self._end("KILLED", "failed", "interrupted by a signal", status="interrupted")
+            raise KeyboardInterrupt
+        self.tracker.metrics(self.child, {"diverged_members": len(prog.failed)})
+        if pruned_at is not None:
+            reason = (f"pruned at episode {pruned_at}: J over the first {pruned_at} episodes "
+                      f"= {self.reported[pruned_at]:.2f}, below the median of the "
+                      "complete trials at that episode")  # fmt: skip
+            self.tracker.nest(self.child, ids, reason)
+            self.trial.set_user_attr("pruned_at", pruned_at)
+            self.trial.set_user_attr("reason", reason)
+            self._end("KILLED", "pruned", reason, status="pruned")
+            raise optuna.TrialPruned(reason)
+        self.tracker.nest(self.child, ids)
+        n = self.s.episodes
+        curves = [padded(r, n, s in prog.failed) for s, r in prog.returns.items()]
+        if any(c is None for c in curves):
+            self._end("FAILED", "failed", "a member recorded no episode", status="failed")
+            raise RuntimeError("a member recorded no episode")
+        value = area(curves)  # type: ignore[arg-type]
+        final = float(np.mean([np.mean(c[-100:]) for c in curves]))  # type: ignore[index]
+        self.trial.set_user_attr("status", "complete")
+        self.trial.set_user_attr("final_score", final)
+        self.tracker.metrics(self.child, {"objective": value, "final_score": final})
+        self.tracker.end(self.child, "FINISHED", "complete")
+        log.info("trial %d: J = %.2f, final MA100 = %.1f, %s", self.trial.number, value, final,
+                 params)  # fmt: skip
+        return value
