@@ -36,7 +36,8 @@ CONTROLLERS = ("h2", "hinf", "hinf_f", "ddqn", "none")
 @dataclass
 class EnvConfig:
     name: str = "cartpole"
-    """Short name used in tags and tables."""
+    """Label in run names, tags, tables and studies: a preset's name, or for an id no
+    preset names the id's label (:func:`cdqn.envs.adopt`)."""
     id: str = "CartPole-v1"
     """Any gymnasium id with a discrete action space; ``<module>:<Id>`` imports the module
     that registers ``<Id>`` first (as ``gymnasium.make``)."""

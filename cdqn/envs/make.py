@@ -106,13 +106,13 @@ def _make(env_id: str, kwargs: dict[str, Any], cap: int | None) -> gym.Env:
         raise ConfigError(
             f"env.id={env_id!r} needs an optional package that is not installed; {fix}"
         ) from None
-    except TypeError as err:
+    except Exception as err:  # with env.kwargs: the constructor's refusal is one line
         if not kwargs:
             raise
         first = str(err).split(" was raised from the environment creator")[0]
         raise ConfigError(
-            f"env.kwargs={kwargs}: {spec.id}'s constructor refused them ({first}); give "
-            "arguments its constructor takes"
+            f"env.kwargs={kwargs}: {spec.id}'s constructor refused them "
+            f"({type(err).__name__}: {first}); give arguments and values it takes"
         ) from None
 
 
