@@ -65,9 +65,9 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from cdqn.agents.base import EpsilonGreedy  # noqa: E402
-from cdqn.config import Config, register_configs  # noqa: E402
+from cdqn.config import Config, ConfigError, register_configs  # noqa: E402
 from cdqn.control.factory import make_controller  # noqa: E402
-from cdqn.envs import env_sizes, make_env  # noqa: E402
+from cdqn.envs import adopt, env_presets, env_sizes, make_env  # noqa: E402
 from cdqn.network import NetworkSpec, QNetwork  # noqa: E402
 from cdqn.training.build import build, build_population, member_config  # noqa: E402
 from cdqn.training.loop import DivergenceError, EpisodeStats, TrainState, train  # noqa: E402
@@ -120,10 +120,11 @@ class Throughput:
 
 
 def compose_config(overrides: list[str]) -> DictConfig:
-    """The configuration ``python -m cdqn.train <overrides>`` would run."""
+    """The configuration ``python -m cdqn.train <overrides>`` would run, adopted by its
+    environment (:func:`cdqn.envs.adopt`)."""
     register_configs()
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
-        return compose("config", overrides=overrides)
+        return adopt(compose("config", overrides=overrides)).cfg
 
 
 def _conf(cfg: DictConfig) -> Config:
@@ -430,8 +431,9 @@ def signal_write_seconds_per_step(uri: str, rows: int = 100_000) -> float:
 
 
 def _overrides(env: str, controller: str, width: int, uri: str) -> list[str]:
+    """``--env`` is a preset (``env=<preset>``) or any id (``env.id=<id>``)."""
     return [
-        f"env={env}",
+        f"env={env}" if env in env_presets() else f"env.id={env}",
         f"controller={controller}",
         f"network.width={width}",
         f"tracking.uri={uri}",
@@ -444,7 +446,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(
         prog="python -m cdqn.bench", description=__doc__.split("\n")[0]
     )
-    parser.add_argument("--env", default="cartpole", help="env config (default cartpole)")
+    parser.add_argument(
+        "--env", default="cartpole", help="env preset or gymnasium id (default cartpole)"
+    )
     parser.add_argument("--controllers", default=",".join(CONTROLLERS))
     parser.add_argument("--width", type=int, default=2500, help="hidden units (paper: 2500)")
     parser.add_argument("--steps", type=int, default=5000, help="timed steps per measurement")
@@ -507,7 +511,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                     pop[c].append(keep(p.member_steps))
         floor_sps = _median(floor)
         result: dict[str, Any] = {
-            "env": args.env,
+            "env": str(base.env.name),
+            "env_id": str(base.env.id),
             "width": args.width,
             "clock": args.clock,
             "floor": {"steps_per_s": floor_sps},
@@ -600,4 +605,8 @@ def format_report(r: dict[str, Any]) -> str:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    try:
+        main(sys.argv[1:])
+    except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        sys.exit(2)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import os
 import re
 import sys
@@ -47,7 +48,6 @@ from cdqn.config import (
     EnvConfig,
     EvaluateConfig,
     register_configs,
-    validate,
     validate_evaluate,
 )
 
@@ -72,30 +72,27 @@ register_configs()
 
 
 def check_train(cfg: DictConfig) -> None:
-    """What ``python -m cdqn.train`` refuses: the schema's rules and the environment."""
+    """What ``python -m cdqn.train`` refuses: the environment's adoption, the schema's
+    rules (:func:`cdqn.envs.adopt`), and the environment as the run would build it."""
     if cfg.get("resume"):
         return  # the stored configuration is checked when the run is resumed
-    from cdqn.envs import adopt_env_id  # noqa: PLC0415 (gymnasium only when needed)
+    from cdqn.envs import adopt  # noqa: PLC0415 (gymnasium only when needed)
 
-    adopt_env_id(cfg)  # env.id=<id>: that environment's cap (cdqn.envs)
-    conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
-    validate(conf)
-    _check_env(_env_key(conf.env))
+    _check_env(_env_key(adopt(cfg).conf.env))
 
 
-def _env_key(env: EnvConfig) -> tuple:
-    """``env`` as a hashable key of :func:`_check_env` (lists as tuples)."""
-    return tuple((k, tuple(v) if isinstance(v, list) else v) for k, v in vars(env).items())
+def _env_key(env: EnvConfig) -> str:
+    """``env`` as a hashable key of :func:`_check_env`."""
+    return json.dumps(dataclasses.asdict(env), sort_keys=True)
 
 
 @functools.lru_cache(maxsize=32)
-def _check_env(key: tuple) -> None:
-    """Build the environment once as the run would (id, cap, features, scale, radial
-    features); a multirun checks each distinct environment once."""
+def _check_env(key: str) -> None:
+    """Build the environment once as the run would (id, kwargs, cap, features, scale,
+    radial features); a multirun checks each distinct environment once."""
     from cdqn.envs import make_env  # noqa: PLC0415 (gymnasium only once the rest passed)
 
-    fields = {k: list(v) if isinstance(v, tuple) else v for k, v in key}
-    make_env(EnvConfig(**fields)).close()
+    make_env(EnvConfig(**json.loads(key))).close()
 
 
 def check_evaluate(cfg: DictConfig) -> None:
@@ -301,6 +298,8 @@ def explain(err: Exception, schema: type = Config) -> str:
     merging = re.search(r"Error merging override (\S+)", str(err))
     if isinstance(cause, ConfigAttributeError | ConfigKeyError) and full_key:
         parent, _, _ = key.rpartition(".")
+        if typing.get_origin(_walk(schema, parent)) is dict:  # a mapping, e.g. env.kwargs
+            return f"{key}: {parent} has no such key yet; add it with +{key}=<value>"
         names = _field_names(schema, parent)
         where = f" in {parent}" if parent else ""
         return f"{key}: no such setting{where}; allowed: {', '.join(names)}"

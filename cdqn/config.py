@@ -36,11 +36,17 @@ CONTROLLERS = ("h2", "hinf", "hinf_f", "ddqn", "none")
 @dataclass
 class EnvConfig:
     name: str = "cartpole"
-    """Short name used in tags and tables."""
+    """Label in run names, tags, tables and studies: a preset's name, or for an id no
+    preset names the id's label (:func:`cdqn.envs.adopt`)."""
     id: str = "CartPole-v1"
-    """Any gymnasium id with a discrete action space."""
+    """Any gymnasium id with a discrete action space; ``<module>:<Id>`` imports the module
+    that registers ``<Id>`` first (as ``gymnasium.make``)."""
+    kwargs: dict[str, Any] = field(default_factory=dict)
+    """Keyword arguments of the environment's constructor, ``gymnasium.make(id, **kwargs)``
+    (empty: its registration's)."""
     max_episode_steps: int | None = 200
-    """Episode cap in environment steps (None: the environment's own limit)."""
+    """Episode cap in environment steps (None: the environment's registered limit; an
+    environment registered without one needs it set)."""
     obs_indices: list[int] | None = None
     """Observation features fed to the network (None: all)."""
     normalize: bool = False

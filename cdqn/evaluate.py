@@ -29,6 +29,7 @@ from pathlib import Path
 import hydra
 import numpy as np
 import pandas as pd
+import yaml
 from mlflow.entities import Metric, RunTag
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
@@ -131,7 +132,9 @@ def evaluate(cfg: EvaluateConfig) -> EvalResult:
 
 
 def _env_config(client: MlflowClient, run_id: str, tmp: Path) -> EnvConfig:
-    """The run's environment settings: from ``config.yaml``, else from its params."""
+    """The environment the run trained on: the ``env`` of its ``config.yaml`` as stored
+    (adopted when the run started: id with its module, ``env.kwargs``, cap), else rebuilt
+    from its params."""
     try:
         path = client.download_artifacts(run_id, CONFIG_ARTIFACT, str(tmp))
         stored = OmegaConf.load(path)
@@ -145,8 +148,13 @@ def _env_config(client: MlflowClient, run_id: str, tmp: Path) -> EnvConfig:
             ) from None
         steps = params.get("env.max_episode_steps", "None")
         indices = params.get("env.obs_indices", "None")
+        prefix = "env.kwargs."
+        kwargs = {
+            k[len(prefix) :]: yaml.safe_load(v) for k, v in params.items() if k.startswith(prefix)
+        }
         return EnvConfig(
             id=params["env.id"],
+            kwargs=kwargs,
             max_episode_steps=None if steps == "None" else int(steps),
             obs_indices=None if indices in ("None", "null") else list(OmegaConf.create(indices)),
         )

@@ -21,9 +21,9 @@ from pathlib import Path
 
 import hydra
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from cdqn.config import ConfigError, SynthesizeConfig, register_configs, validate
+from cdqn.config import ConfigError, SynthesizeConfig, register_configs
 from cdqn.control.errors import DesignError
 
 log = logging.getLogger("cdqn.synthesize")
@@ -75,12 +75,12 @@ def h2_report(conf: SynthesizeConfig, out: Path) -> str:
 
 def synthesize(cfg: DictConfig) -> str:
     """Design, write the artefacts into ``cfg.out``, return the report."""
-    from cdqn.envs import adopt_env_id  # noqa: PLC0415
+    from cdqn.envs import adopt  # noqa: PLC0415
 
-    if (adopted := adopt_env_id(cfg)) is not None:  # env.id=<id>: that environment's box
-        log.info("%s", adopted)
-    conf: SynthesizeConfig = OmegaConf.to_object(cfg)  # type: ignore[assignment]
-    validate(conf)
+    adopted = adopt(cfg)  # env.id=<id>: that environment's cap, threshold and NTK box
+    if adopted.change is not None:
+        log.info("%s", adopted.change)
+    conf: SynthesizeConfig = adopted.conf  # type: ignore[assignment]
     out = Path(conf.out)
     if conf.controller.name == "h2":
         return h2_report(conf, out)

@@ -245,6 +245,8 @@ class ClassicControlTwin:
             return False
         if any(_physics(b) != _physics(base) for b in bases):
             return False
+        if any(b.spec is None or b.spec.kwargs != gym.spec(b.spec.id).kwargs for b in bases):
+            return False  # made with env.kwargs: the twin reimplements the default physics
         if isinstance(base, CartPoleEnv):
             return base.kinematics_integrator in ("euler", "semi-implicit") and not getattr(
                 base, "_sutton_barto_reward", False

@@ -21,12 +21,17 @@ from mlflow.tracking import MlflowClient
 from cdqn.training.loop import EpisodeStats
 from cdqn.training.tracking import Recorder
 
+ROOT = Path(__file__).resolve().parents[1]
+"""The checkout these tests belong to."""
+
 
 def run_cli(
     module: str, args: list[str], cwd: Path, timeout: float = 300.0
 ) -> subprocess.CompletedProcess[str]:
-    """``python -m <module> <args>`` in ``cwd``; output captured as text."""
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    """``python -m <module> <args>`` in ``cwd``, with this checkout's ``cdqn`` and ``tests``
+    importable (:data:`ROOT` on ``PYTHONPATH``); output captured as text."""
+    path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": path}
     env.pop("HYDRA_FULL_ERROR", None)
     return subprocess.run(
         [sys.executable, "-m", module, *args],

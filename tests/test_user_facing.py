@@ -16,7 +16,7 @@ from mlflow.tracking import MlflowClient
 
 from analysis.figures import FigureContext, learning
 from analysis.runs import RunStore, comparable_runs
-from cdqn.envs import adopt_env_id
+from cdqn.envs import adopt
 from tests.conftest import compose_config
 from tests.helpers import run_cli
 
@@ -178,15 +178,16 @@ def test_short_runs_stay_visible_in_learning_curves(store) -> None:
     assert all(ln.get_marker() == "o" for ln in lines)
 
 
-def test_adopt_env_id_keeps_explicit_values_and_matching_weights() -> None:
+def test_adopt_keeps_explicit_values_and_matching_weights() -> None:
     cfg = compose_config(["env.id=Acrobot-v1", "env.max_episode_steps=50", "weights=acrobot"])
-    assert adopt_env_id(cfg) is not None
-    assert cfg.env.max_episode_steps == 50  # set explicitly: kept
-    assert cfg.env.solve_threshold == -100.0
-    assert cfg.controller.synthesis.ntk_bounds == "config"  # the weights are Acrobot's
-    assert adopt_env_id(cfg) is None  # once adopted, nothing changes
+    adopted = adopt(cfg)
+    assert adopted.change is not None and cfg.env.name == "cartpole"  # the input unchanged
+    assert adopted.cfg.env.max_episode_steps == 50  # set explicitly: kept
+    assert adopted.cfg.env.solve_threshold == -100.0
+    assert adopted.box_source == "config"  # the weights are Acrobot's
+    assert adopt(adopted.cfg).change is None  # once adopted, nothing changes
     cfg = compose_config(["env=acrobot"])
-    assert adopt_env_id(cfg) is None and cfg.env.name == "acrobot"
+    assert adopt(cfg).change is None and adopt(cfg).cfg.env.name == "acrobot"
 
 
 def run_cli_script(script: str, args: list[str], cwd: Path):

@@ -101,9 +101,9 @@ def start_population(
     docstring).  With ``tracking.skip_finished`` members that FINISHED are skipped and
     KILLED ones continued.  ``observe(member)`` is called after each recorded episode and a
     true ``should_stop()`` ends the population as a signal does (members KILLED); both
-    serve :mod:`cdqn.tune` (intermediate values, pruning)."""
+    serve :mod:`cdqn.tune` (intermediate values, pruning).  ``cfg`` is adopted and
+    validated (:func:`cdqn.training.run.run_population`)."""
     conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
-    validate(conf)
     uri = resolve_tracking_uri(conf.tracking.uri)
     check_tracking(uri, conf.tracking.timeout)
     ensure_store(uri, conf.tracking.experiment)

@@ -18,8 +18,8 @@ from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
-from cdqn.config import Config, ConfigError, resolve_tracking_uri, validate
-from cdqn.envs import adopt_env_id, make_env
+from cdqn.config import ConfigError, resolve_tracking_uri
+from cdqn.envs import Adopted, adopt, make_env
 from cdqn.training.build import batchable, member_config, member_seeds
 from cdqn.training.population import resume_population, start_population
 from cdqn.training.population_checkpoint import population_runs
@@ -35,15 +35,26 @@ log = logging.getLogger("cdqn")
 def run(cfg: DictConfig, progress: bool = True) -> RunResult:
     """Train one configuration and record it as one MLflow run (a population: one run per
     member, :meth:`PopulationResult.summary` returned); with ``resume=<run_id>`` continue
-    that run from its last checkpoint instead (:func:`resume`)."""
+    that run from its last checkpoint instead (:func:`resume`).  The configuration is
+    adopted by its environment first (:func:`cdqn.envs.adopt`)."""
     if cfg.get("resume"):
         return resume(cfg, progress)
-    if (adopted := adopt_env_id(cfg)) is not None:
-        log.info("%s", adopted)
-    if cfg.train.get("population", 1) > 1:  # K seeds as one batch (cdqn.training.population)
-        return run_population(cfg, progress).summary()
-    conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
-    validate(conf)
+    return run_adopted(adopted_config(cfg), progress)
+
+
+def adopted_config(cfg: DictConfig) -> Adopted:
+    """:func:`cdqn.envs.adopt`, with what it changed logged."""
+    adopted = adopt(cfg)
+    if adopted.change is not None:
+        log.info("%s", adopted.change)
+    return adopted
+
+
+def run_adopted(adopted: Adopted, progress: bool = True) -> RunResult:
+    """:func:`run` of a configuration already adopted by its environment."""
+    cfg, conf = adopted.cfg, adopted.conf
+    if conf.train.population > 1:  # K seeds as one batch (cdqn.training.population)
+        return _population(adopted, progress).summary()
     env = make_env(conf.env)  # refuses unknown ids, continuous actions before any store is touched
     try:
         uri = resolve_tracking_uri(conf.tracking.uri)
@@ -72,14 +83,29 @@ def run_population(
     """Train seeds ``seed … seed+population−1`` of ``cfg``, each as its own MLflow run: as
     one batch (:func:`cdqn.training.population.start_population`, where ``observe`` and
     ``should_stop`` serve :mod:`cdqn.tune`) when the configuration allows it
-    (:func:`cdqn.training.build.batchable`), else one single run after another."""
-    conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
-    validate(conf)
+    (:func:`cdqn.training.build.batchable`), else one single run after another.  The
+    configuration is adopted by its environment first (:func:`cdqn.envs.adopt`)."""
+    return _population(adopted_config(cfg), progress, observe, should_stop)
+
+
+def _population(
+    adopted: Adopted,
+    progress: bool = True,
+    observe: Callable[[Member], None] | None = None,
+    should_stop: Callable[[], bool] | None = None,
+) -> PopulationResult:
+    cfg, conf = adopted.cfg, adopted.conf
     if batchable(conf):
         return start_population(cfg, progress, observe, should_stop)
     log.info("population of %s: members trained one after another", conf.controller.name)
     seeds = member_seeds(conf.seed, conf.train.population)
-    return PopulationResult([run(member_config(cfg, s), progress) for s in seeds])
+    return PopulationResult([run_adopted(_member(cfg, s), progress) for s in seeds])
+
+
+def _member(cfg: DictConfig, seed: int) -> Adopted:
+    """The adopted single run that the member of seed ``seed`` stands for."""
+    member = member_config(cfg, seed)
+    return Adopted(member, OmegaConf.to_object(member), None)  # type: ignore[arg-type]
 
 
 def resume(cfg: DictConfig, progress: bool = True) -> RunResult:

@@ -4,7 +4,7 @@ tracking store made ready once before parallel jobs start.
 Every run is tagged ``config_hash``: a hash of its resolved configuration without the keys
 that do not change what is learned (:data:`IGNORED_KEYS`: where it is recorded, progress
 display, checkpoint interval, population size), seed included; a controller's own learning
-target enters it only where one of its ranges is set.  With
+target enters it only where one of its ranges is set, ``env.kwargs`` only when given.  With
 ``tracking.skip_finished=true`` a job first asks the store for a FINISHED run with its hash
 and, if there is one, logs ``skipping …`` and trains nothing; a population skips the
 members that finished and trains the others.  An interrupted sweep started again therefore
@@ -68,6 +68,7 @@ def config_hash(cfg: DictConfig | dict[str, Any]) -> str:
         if isinstance(node, dict):
             node.pop(leaf, None)
     _drop_unset_own_targets(tree)
+    _drop_empty_env_kwargs(tree)
     text = json.dumps(tree, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -86,6 +87,14 @@ def _drop_unset_own_targets(tree: dict[str, Any]) -> None:
             del own[name]
     if not own:
         weights.pop("controller_target")
+
+
+def _drop_empty_env_kwargs(tree: dict[str, Any]) -> None:
+    """Leave ``env.kwargs`` out when empty (the registration's constructor arguments): the
+    configuration is then the one of runs recorded before the setting existed."""
+    env = tree.get("env")
+    if isinstance(env, dict) and not env.get("kwargs", True):
+        env.pop("kwargs")
 
 
 def find_finished(client: MlflowClient, experiment: str, chash: str) -> Run | None:

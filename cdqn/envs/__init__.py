@@ -1,0 +1,33 @@
+"""Environments: any gymnasium id with a discrete action space.
+
+* :mod:`cdqn.envs.adopt` — :func:`adopt`, a configuration made a run of its environment
+  (name, episode cap, threshold, NTK box source), once per entry point;
+* :mod:`cdqn.envs.make` — :func:`make_env` (``<module>:<Id>``, ``env.kwargs``, one clear
+  line per problem) and :func:`env_sizes`;
+* :mod:`cdqn.envs.wrappers` — what the network sees: one-hot encoding of discrete
+  observations, feature subset, scaling, radial basis features;
+* :mod:`cdqn.envs.presets` — the presets of ``conf/env/``.
+"""
+
+from cdqn.envs.adopt import BOX_SOURCES, Adopted, adopt
+from cdqn.envs.make import EXTRAS, EnvId, env_label, env_sizes, make_env, registration
+from cdqn.envs.presets import CONF_DIR, env_presets
+from cdqn.envs.wrappers import ObservationScale, ObservationSubset, OneHot, RadialFeatures
+
+__all__ = [
+    "BOX_SOURCES",
+    "CONF_DIR",
+    "EXTRAS",
+    "Adopted",
+    "EnvId",
+    "ObservationScale",
+    "ObservationSubset",
+    "OneHot",
+    "RadialFeatures",
+    "adopt",
+    "env_label",
+    "env_presets",
+    "env_sizes",
+    "make_env",
+    "registration",
+]

@@ -1,0 +1,112 @@
+"""Adoption: a composed configuration made a run *of its environment*, once per entry point.
+
+Every command (``cdqn.train`` for a single run, a population or a multirun job,
+``cdqn.synthesize``, ``cdqn.evaluate``, ``cdqn.bench``, the check before Hydra starts) calls
+:func:`adopt` on its configuration before anything is built, and reads the result.
+
+The presets of ``conf/env/`` name one gymnasium id each, with its episode cap and solve
+threshold.  When ``env.id`` is not the id of the preset named ``env.name``
+(``env=cartpole env.id=Acrobot-v1``, or the default preset with ``env.id=<module>:<Id>``):
+
+* ``env.name`` becomes the id's label (:func:`cdqn.envs.make.env_label`: the id without
+  its module, ``/`` → ``-``), so the run is named ``<label>-<controller>-s<seed>``, tagged
+  ``env=<label>`` and grouped under it by the analysis and the tuner;
+* ``env.max_episode_steps`` and ``env.solve_threshold`` come from the id's registration
+  (``max_episode_steps``, ``reward_threshold``) unless they were set to something other than
+  the preset's values.
+
+For a run of an id no preset names (an adopted one, or one named by the user),
+``controller.synthesis.ntk_bounds`` becomes ``measured`` when the selected ``weights``
+preset belongs to an environment preset of another id: a robust design is never built on
+another environment's NTK box.  A weights preset of the user's own (not shipped) is theirs
+to choose and keeps its box.  A run of a preset's own id is left as it is.
+
+Refused, one line each: an id that cannot be imported or is not registered, and an
+environment registered without an episode cap when ``env.max_episode_steps`` is not given
+(an episode must end for the run to make progress).
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+
+from gymnasium.envs.registration import EnvSpec
+from omegaconf import DictConfig, OmegaConf, read_write
+
+from cdqn.config import Config, ConfigError, EnvConfig, validate
+from cdqn.envs.make import env_label, registration
+from cdqn.envs.presets import env_presets
+
+BOX_SOURCES = ("config", "measured")
+"""Where the robust designs' NTK box comes from (``controller.synthesis.ntk_bounds``)."""
+
+
+@dataclass(frozen=True)
+class Adopted:
+    """A configuration adopted by its environment (:func:`adopt`)."""
+
+    cfg: DictConfig
+    """The adopted configuration: a new object, the input is left unchanged."""
+    conf: Config
+    """``cfg`` as the schema's typed object, validated (:func:`cdqn.config.validate`)."""
+    change: str | None
+    """One line saying what adoption changed; None when nothing did."""
+
+    @property
+    def box_source(self) -> str:
+        """``measured`` (rollout of the run's own network) or ``config``
+        (``weights.theta_bounds``); recorded as the param ``controller.synthesis.ntk_bounds``."""
+        return str(self.conf.controller.synthesis.ntk_bounds)
+
+
+def adopt(cfg: DictConfig) -> Adopted:
+    """``cfg`` as a run of its environment (module docstring); idempotent:
+    ``adopt(adopt(cfg).cfg).change is None``.  Raises :class:`ConfigError` for an id that
+    cannot be made, an environment without an episode cap, or any value
+    :func:`cdqn.config.validate` refuses."""
+    out = copy.deepcopy(cfg)
+    env = out.env
+    spec = registration(str(env.id))  # imports <module>: of <module>:<Id>
+    preset = env_presets().get(str(env.name))
+    changed: list[str] = []
+    with read_write(out):
+        if preset is not None and preset.id != env.id:
+            changed += _take_registration(env, preset, spec)
+        if preset is None or preset.id != env.id:
+            changed += _box_of_its_own(out)
+    if env.max_episode_steps is None and spec.max_episode_steps is None:
+        raise ConfigError(
+            f"env.max_episode_steps=null: {env.id} is registered without an episode cap "
+            "(max_episode_steps) and none was given; give one, env.max_episode_steps=<steps>"
+        )
+    conf: Config = OmegaConf.to_object(out)  # type: ignore[assignment]
+    validate(conf)
+    head = f"env.id={env.id} is not env={preset.name}'s {preset.id}: " if preset else ""
+    return Adopted(out, conf, head + ", ".join(changed) if changed else None)
+
+
+def _take_registration(env: DictConfig, preset: EnvConfig, spec: EnvSpec) -> list[str]:
+    """Name, cap and threshold of ``env.id`` (registered as ``spec``) in place of
+    ``preset``'s; what changed."""
+    cap, threshold = spec.max_episode_steps, spec.reward_threshold
+    label = env_label(str(env.id))
+    env.name = label
+    changed = [f"named {label}"]
+    if env.max_episode_steps == preset.max_episode_steps:
+        env.max_episode_steps = cap
+        changed.append(f"episode cap {cap} (its registration)")
+    if env.solve_threshold == preset.solve_threshold:
+        env.solve_threshold = threshold
+        changed.append(f"solve threshold {threshold} (its registration)")
+    return changed
+
+
+def _box_of_its_own(cfg: DictConfig) -> list[str]:
+    """``ntk_bounds=measured`` when the weights preset is another environment's."""
+    weights_env = env_presets().get(str(cfg.weights.name))
+    syn = cfg.controller.synthesis
+    if weights_env is None or weights_env.id == cfg.env.id or syn.ntk_bounds == "measured":
+        return []
+    syn.ntk_bounds = "measured"
+    return [f"NTK box measured (weights={cfg.weights.name} are {weights_env.id}'s)"]

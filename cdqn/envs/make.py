@@ -1,0 +1,190 @@
+"""Building an environment from ``env.*``: any gymnasium id with a discrete action space.
+
+``env.id`` is a registered id (``CartPole-v1``, ``ALE/Pong-v5``) or, as in
+``gymnasium.make``, ``<module>:<Id>``: the module is imported first and registers ``<Id>``
+(``env.id=my_package.envs:Chain-v0``).  ``env.kwargs`` go to the environment's constructor.
+Every problem is one :class:`ConfigError` line naming the key, the value and what to do.
+"""
+
+from __future__ import annotations
+
+import difflib
+import importlib
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.envs.registration import EnvSpec
+from gymnasium.spaces import Box, Discrete
+
+from cdqn.config import ConfigError, EnvConfig
+from cdqn.envs.wrappers import ObservationScale, ObservationSubset, OneHot, RadialFeatures
+
+EXTRAS = {
+    "box2d": 'pip install swig, then pip install "gymnasium[box2d]"',
+    "mujoco": 'pip install "gymnasium[mujoco]"',
+}
+"""Install commands of gymnasium's optional environment families."""
+
+
+@dataclass(frozen=True)
+class EnvId:
+    """``env.id`` taken apart: ``<module>:<name>`` or ``<name>``."""
+
+    module: str | None
+    """The module that registers ``name`` when imported (None: gymnasium's own ids)."""
+    name: str
+    """The registered id, e.g. ``Chain-v0`` or ``ALE/Pong-v5``."""
+
+    @classmethod
+    def parse(cls, env_id: str) -> EnvId:
+        module, sep, name = env_id.rpartition(":")
+        return cls(module if sep else None, name)
+
+    @property
+    def label(self) -> str:
+        """A name safe in file names, run names and tags: the id without its module,
+        ``/`` replaced by ``-`` (``ALE/Pong-v5`` → ``ALE-Pong-v5``)."""
+        return self.name.replace("/", "-")
+
+
+def env_label(env_id: str) -> str:
+    """The label of ``env.id`` (:attr:`EnvId.label`)."""
+    return EnvId.parse(env_id).label
+
+
+def registration(env_id: str) -> EnvSpec:
+    """The gymnasium registration of ``env_id``, after importing its module (``<module>:``);
+    an import failure or an unknown id is a :class:`ConfigError`."""
+    parsed = EnvId.parse(env_id)
+    if parsed.module is not None:
+        try:
+            importlib.import_module(parsed.module)
+        except Exception as err:  # any failure of the user's module is one line
+            raise ConfigError(
+                f"env.id={env_id!r}: cannot import module {parsed.module!r} "
+                f"({type(err).__name__}: {err}); give an importable module that registers "
+                f"{parsed.name!r} (<module>:<Id>)"
+            ) from None
+    spec = gym.registry.get(parsed.name)
+    if spec is None:
+        raise _unknown_id(env_id, parsed)
+    return spec
+
+
+def _unknown_id(env_id: str, parsed: EnvId) -> ConfigError:
+    """The error for an unregistered id, with the nearest registered ids."""
+    ids = [k for k in gym.registry if "/" not in k]
+    base = parsed.name.rsplit("-v", 1)[0]
+    near = sorted(k for k in ids if k.rsplit("-v", 1)[0] == base)
+    near += [
+        k for k in difflib.get_close_matches(parsed.name, ids, n=3, cutoff=0.6) if k not in near
+    ]
+    hint = (
+        f"did you mean {', '.join(near)}?"
+        if near
+        else f"e.g. {', '.join(sorted(ids)[:12])}, ... (python -c 'import gymnasium; "
+        "gymnasium.pprint_registry()' lists them all)"
+    )
+    if parsed.module is not None:
+        hint = f"importing {parsed.module!r} did not register {parsed.name!r}; " + hint
+    return ConfigError(f"env.id={env_id!r} is not a registered gymnasium environment; {hint}")
+
+
+def _make(env_id: str, kwargs: dict[str, Any], cap: int | None) -> gym.Env:
+    """``gymnasium.make`` of a registered id, with a missing optional dependency or
+    constructor arguments it refuses as a :class:`ConfigError`."""
+    spec = registration(env_id)
+    extra = {} if cap is None else {"max_episode_steps": cap}
+    try:
+        return gym.make(spec.id, **extra, **kwargs)
+    except gym.error.DependencyNotInstalled as err:
+        entry = str(spec.entry_point)
+        family = next((f for f in EXTRAS if f".{f}." in entry), None)
+        fix = EXTRAS[family] if family else f"install what it names ({err})"
+        raise ConfigError(
+            f"env.id={env_id!r} needs an optional package that is not installed; {fix}"
+        ) from None
+    except Exception as err:  # with env.kwargs: the constructor's refusal is one line
+        if not kwargs:
+            raise
+        first = str(err).split(" was raised from the environment creator")[0]
+        raise ConfigError(
+            f"env.kwargs={kwargs}: {spec.id}'s constructor refused them "
+            f"({type(err).__name__}: {first}); give arguments and values it takes"
+        ) from None
+
+
+def make_env(cfg: EnvConfig) -> gym.Env:
+    """Build the environment of ``cfg``: gymnasium id (its module imported first), its
+    constructor arguments ``env.kwargs``, episode cap, one-hot encoding of a discrete
+    observation, feature subset, scaling (``env.normalize``) and radial basis features
+    (``env.rbf_centres``), in that order."""
+    env = _make(cfg.id, dict(cfg.kwargs or {}), cfg.max_episode_steps)
+    if not isinstance(env.action_space, Discrete):
+        env.close()
+        raise ConfigError(
+            f"env.id={cfg.id!r} has action space {env.action_space}; cdqn needs a Discrete one"
+        )
+    if OneHot.encodes(env.observation_space):
+        env = OneHot(env)
+    space = env.observation_space
+    if not isinstance(space, Box) or len(space.shape) != 1:
+        env.close()
+        raise ConfigError(
+            f"env.id={cfg.id!r}: cdqn needs a flat Box observation, a Discrete one or a Tuple "
+            f"of Discrete ones, got {space}"
+        )
+    if cfg.obs_indices is not None:
+        bad = [i for i in cfg.obs_indices if not 0 <= i < space.shape[0]]
+        if bad or not cfg.obs_indices:
+            env.close()
+            raise ConfigError(
+                f"env.obs_indices={list(cfg.obs_indices)}: indices must lie in "
+                f"[0, {space.shape[0]}) for {cfg.id}"
+            )
+        env = ObservationSubset(env, list(cfg.obs_indices))
+    if cfg.normalize:
+        widths = cfg.normalize_scale
+        n = env.observation_space.shape[0]  # type: ignore[index]
+        if widths is not None and (len(widths) != n or not all(w > 0 for w in widths)):
+            env.close()
+            raise ConfigError(
+                f"env.normalize_scale={list(widths)}: give {n} half-widths > 0, one per "
+                f"observed feature of {cfg.id}, or null"
+            )
+        env = ObservationScale(env, widths)
+    if cfg.rbf_centres is not None:
+        env = _radial_features(env, cfg)
+    return env
+
+
+def _radial_features(env: gym.Env, cfg: EnvConfig) -> RadialFeatures:
+    """:class:`RadialFeatures` of ``cfg``, refused on an unbounded or too large box."""
+    space = env.observation_space
+    assert isinstance(space, Box) and cfg.rbf_centres is not None
+    finite = np.isfinite(space.low) & np.isfinite(space.high)
+    unbounded = [int(i) for i in np.flatnonzero(~finite)]
+    count = cfg.rbf_centres ** space.shape[0]
+    problem = None
+    if unbounded:
+        problem = (
+            f"observed features {unbounded} of {cfg.id} have no finite bounds to place centres "
+            "on (choose features with env.obs_indices)"
+        )
+    elif count > RadialFeatures.MAX_FEATURES:
+        problem = (
+            f"{cfg.rbf_centres}^{space.shape[0]} = {count} features, more than "
+            f"{RadialFeatures.MAX_FEATURES}; use fewer centres or features (env.obs_indices)"
+        )
+    if problem is not None:
+        env.close()
+        raise ConfigError(f"env.rbf_centres={cfg.rbf_centres}: {problem}")
+    return RadialFeatures(env, cfg.rbf_centres, cfg.rbf_width)
+
+
+def env_sizes(env: gym.Env) -> tuple[int, int]:
+    """(observation size, number of actions)."""
+    assert isinstance(env.action_space, Discrete)
+    return int(env.observation_space.shape[0]), int(env.action_space.n)

@@ -1,0 +1,137 @@
+"""Observation wrappers: what the network sees of an environment's observation.
+
+:func:`cdqn.envs.make.make_env` applies them in the order one-hot encoding (a ``Discrete``
+or ``Tuple`` of ``Discrete`` observation), feature subset, scaling, radial basis features.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.spaces import Box, Discrete, Space, Tuple
+
+
+class OneHot(gym.ObservationWrapper):
+    """A ``Discrete(n)`` observation as the one-hot vector ``e_s`` of length ``n``; a
+    ``Tuple`` of ``Discrete`` spaces as the concatenation of their one-hot vectors.
+
+    A state index fed as a number would be read as a magnitude (Taxi's state 400 "larger"
+    than state 4).  With ``e_s`` every state has its own input direction: in the NTK of
+    :mod:`cdqn.network`, ``Θ((x,a),(y,b)) = [a=b](h·g + 1) + (x·y + 1) Σ_j …``, two distinct
+    states have ``x·y = 0`` (one ``Discrete``), so the hidden-layer term of Θ2 counts the
+    bias only, and a step at ``s`` moves Q at other states less than at ``s``."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        self.sizes, self.starts = self.parts(env.observation_space)
+        self.offsets = np.concatenate([[0], np.cumsum(self.sizes)[:-1]]).astype(np.int64)
+        self.observation_space = Box(0.0, 1.0, (int(sum(self.sizes)),), dtype=np.float32)
+
+    @staticmethod
+    def encodes(space: Space) -> bool:
+        """Whether :class:`OneHot` encodes ``space``: ``Discrete`` or a ``Tuple`` of them."""
+        if isinstance(space, Tuple):
+            return len(space.spaces) > 0 and all(isinstance(s, Discrete) for s in space.spaces)
+        return isinstance(space, Discrete)
+
+    @staticmethod
+    def parts(space: Space) -> tuple[list[int], list[int]]:
+        """Sizes ``n`` and first values ``start`` of the ``Discrete`` parts of ``space``."""
+        spaces = space.spaces if isinstance(space, Tuple) else (space,)
+        return [int(s.n) for s in spaces], [int(s.start) for s in spaces]  # type: ignore[attr-defined]
+
+    def observation(self, observation: object) -> np.ndarray:
+        values = observation if isinstance(observation, tuple) else (observation,)
+        out = np.zeros(self.observation_space.shape, dtype=np.float32)
+        for offset, start, value in zip(self.offsets, self.starts, values, strict=True):
+            out[offset + int(value) - start] = 1.0
+        return out
+
+
+class ObservationSubset(gym.ObservationWrapper):
+    """Keep only the observation features ``indices`` (e.g. pole angle and velocity)."""
+
+    def __init__(self, env: gym.Env, indices: list[int]) -> None:
+        super().__init__(env)
+        space = env.observation_space
+        assert isinstance(space, Box)
+        self.indices = np.asarray(indices, dtype=np.int64)
+        self.observation_space = Box(
+            space.low[self.indices], space.high[self.indices], dtype=space.dtype
+        )
+
+    def observation(self, observation: np.ndarray) -> np.ndarray:
+        return observation[self.indices]
+
+
+class ObservationScale(gym.ObservationWrapper):
+    """Map each observation feature affinely from its ``[low, high]`` to ``[−1, 1]``
+    (``env.normalize``), or to ``[−w, w]`` with per-feature half-widths ``widths``
+    (``env.normalize_scale``); features with an infinite bound are passed through unchanged.
+
+    A wide network's NTK compares inputs through ``x·y`` and its ReLU pattern: features on
+    very different scales (Mountain car's velocity is a hundredth of its position) leave
+    the kernel blind to the small ones, so every state looks alike to the learning update
+    (Θ2/Θ1 within 1 ± 0.007 on Mountain car)."""
+
+    def __init__(self, env: gym.Env, widths: list[float] | None = None) -> None:
+        super().__init__(env)
+        space = env.observation_space
+        assert isinstance(space, Box)
+        low, high = space.low.astype(np.float64), space.high.astype(np.float64)
+        w = np.ones(low.shape) if widths is None else np.asarray(widths, dtype=np.float64)
+        finite = np.isfinite(low) & np.isfinite(high) & (high > low)
+        self.offset = np.where(finite, 0.5 * (low + high), 0.0).astype(space.dtype)
+        self.scale = np.where(finite, 2.0 * w / np.where(finite, high - low, 1.0), 1.0).astype(
+            space.dtype
+        )
+        self.observation_space = Box(
+            np.where(finite, -w, low).astype(space.dtype),
+            np.where(finite, w, high).astype(space.dtype),
+            dtype=space.dtype,
+        )
+
+    def observation(self, observation: np.ndarray) -> np.ndarray:
+        return (observation - self.offset) * self.scale
+
+
+class RadialFeatures(gym.ObservationWrapper):
+    """Gaussian radial basis features of the observation (``env.rbf_centres``).
+
+    With ``n`` centres per feature on a grid over the observation box ``[low, high]`` (the
+    scaled box when ``env.normalize`` is on), the network sees, instead of ``s``,
+
+    .. math::  \\phi_j(s) = \\exp\\Big(-\\tfrac12 \\sum_i
+               \\big((s_i - c_{ji})/\\sigma_i\\big)^2\\Big),
+               \\qquad \\sigma_i = w\\,(\\mathrm{high}_i - \\mathrm{low}_i)/(n - 1),
+
+    ``n^d`` features for ``d`` observed features (``w``: ``env.rbf_width``, in grid spacings).
+    The NTK of the two-layer ReLU network compares inputs through ``x·y`` and the angle
+    between them: on raw or scaled observations every pair of states is similar to it, so one
+    online step moves Q over the whole state space alike.  On ``φ`` two states far apart share
+    no features, and a step mostly moves Q near the state it learns from (docs/learning.md,
+    §6: Mountain car's controlled agents learn with them)."""
+
+    MAX_FEATURES = 4096
+    """The largest n^d accepted (the network's input size)."""
+
+    def __init__(self, env: gym.Env, centres: int, width: float) -> None:
+        super().__init__(env)
+        space = env.observation_space
+        assert isinstance(space, Box)
+        low, high = space.low.astype(np.float64), space.high.astype(np.float64)
+        grid = [np.linspace(lo, hi, centres) for lo, hi in zip(low, high, strict=True)]
+        mesh = np.meshgrid(*grid, indexing="ij")
+        self.dtype = space.dtype
+        self.centres = np.stack(mesh, axis=-1).reshape(-1, len(low)).astype(self.dtype)
+        self.sigma = (width * (high - low) / (centres - 1)).astype(self.dtype)
+        self.observation_space = Box(0.0, 1.0, (len(self.centres),), dtype=self.dtype)
+
+    def features(self, obs: np.ndarray) -> np.ndarray:
+        """``φ`` of each row of ``obs`` ``(K, d)``: ``(K, n^d)``; the population's
+        environments call this on all members at once, with the same result per row."""
+        z = (obs[:, None, :] - self.centres[None, :, :]) / self.sigma
+        return np.exp(-0.5 * (z * z).sum(axis=-1)).astype(self.dtype)
+
+    def observation(self, observation: np.ndarray) -> np.ndarray:
+        return self.features(np.asarray(observation)[None, :])[0]

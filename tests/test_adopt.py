@@ -1,0 +1,347 @@
+"""A run of an environment no preset names is that environment's, whatever the entry point:
+adoption (:func:`cdqn.envs.adopt`), ``<module>:<Id>`` ids, ``env.kwargs``, the episode-cap
+rule and discrete observations.  The toy environments are registered by the package
+``tests.toy_envs`` when it is imported, as a user's own package would; the commands are the
+real ``python -m cdqn.*`` in subprocesses, on a real SQLite store."""
+
+from __future__ import annotations
+
+import json
+import tempfile
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from mlflow.tracking import MlflowClient
+from omegaconf import OmegaConf
+
+from cdqn.cli import EXIT_CONFIG, check_overrides
+from cdqn.config import EnvConfig
+from cdqn.envs import adopt, env_label, env_presets, env_sizes, make_env
+from cdqn.network import NetworkSpec, QNetwork
+from cdqn.ntk_bounds import measured_box
+from cdqn.training.run import run
+from cdqn.training.sweep import config_hash
+from cdqn.vector_env import ClassicControlTwin, GymLoop, make_vector_env
+from tests.conftest import compose_config
+from tests.helpers import episode_returns, run_cli, runs_of, signals_after_episode
+from tests.test_population import BASE, _population, _single
+
+TOY = "tests.toy_envs:CdqnChain-v0"
+"""Registered on import of ``tests.toy_envs``: cap 50 steps, reward threshold −12."""
+LABEL = "CdqnChain-v0"
+NO_CAP = "tests.toy_envs:CdqnChainNoCap-v0"
+SMALL = ["network=small", "train.episodes=3", "train.progress=false"]
+
+
+# --- adoption ------------------------------------------------------------------------------
+
+
+def test_an_id_no_preset_names_is_adopted_once() -> None:
+    cfg = compose_config([f"env.id={TOY}"])
+    adopted = adopt(cfg)
+    env = adopted.cfg.env
+    assert (env.name, env.max_episode_steps, env.solve_threshold) == (LABEL, 50, -12.0)
+    assert adopted.box_source == "measured"  # weights=cartpole are another id's
+    assert adopted.change == (
+        f"env.id={TOY} is not env=cartpole's CartPole-v1: named {LABEL}, episode cap 50 (its "
+        "registration), solve threshold -12.0 (its registration), NTK box measured "
+        "(weights=cartpole are CartPole-v1's)"
+    )
+    assert cfg.env.name == "cartpole" and cfg.env.max_episode_steps == 200  # a new object
+    again = adopt(adopted.cfg)
+    assert again.change is None and again.cfg == adopted.cfg
+
+
+def test_values_set_explicitly_stay() -> None:
+    adopted = adopt(
+        compose_config([f"env.id={TOY}", "env.max_episode_steps=30", "env.solve_threshold=-9"])
+    )
+    assert (adopted.conf.env.max_episode_steps, adopted.conf.env.solve_threshold) == (30, -9.0)
+
+
+def test_labels_are_safe_in_file_names() -> None:
+    assert env_label(TOY) == LABEL
+    assert env_label("ALE/Pong-v5") == "ALE-Pong-v5"
+    assert env_label("CartPole-v1") == "CartPole-v1"
+
+
+@pytest.mark.parametrize("env", sorted(env_presets()))
+def test_presets_are_left_as_they_are_and_hash_as_before(env: str) -> None:
+    cfg = compose_config([f"env={env}"])
+    adopted = adopt(cfg)
+    assert adopted.change is None and adopted.cfg == cfg
+    assert adopted.box_source == "config"
+    tree = OmegaConf.to_container(cfg, resolve=True)
+    del tree["env"]["kwargs"]  # type: ignore[index]  # as recorded before env.kwargs existed
+    assert config_hash(tree) == config_hash(cfg)  # type: ignore[arg-type]
+    given = compose_config([f"env={env}", "+env.kwargs.render_mode=rgb_array"])
+    assert config_hash(given) != config_hash(cfg)
+
+
+# --- module:Id, kwargs, refusals -------------------------------------------------------------
+
+
+def test_kwargs_reach_the_constructor_and_keep_the_twin_away() -> None:
+    conf = adopt(
+        compose_config([f"env.id={TOY}", "+env.kwargs.length=4", "+env.kwargs.step_reward=-2.0"])
+    ).conf
+    env = make_env(conf.env)
+    assert (env.unwrapped.length, env.unwrapped.step_reward) == (4, -2.0)
+    assert isinstance(
+        make_vector_env([make_env(EnvConfig()) for _ in range(2)]), ClassicControlTwin
+    )
+    given = EnvConfig(kwargs={"sutton_barto_reward": False})  # the default value, still given
+    assert isinstance(make_vector_env([make_env(given) for _ in range(2)]), GymLoop)
+
+
+REFUSED = [
+    (
+        ["env.id=tests.no_such_module:Chain-v0"],
+        "env.id='tests.no_such_module:Chain-v0': cannot import module 'tests.no_such_module' "
+        "(ModuleNotFoundError: No module named 'tests.no_such_module'); give an importable "
+        "module that registers 'Chain-v0' (<module>:<Id>)",
+    ),
+    (
+        ["env.id=tests.toy_envs:Nope-v0"],
+        "env.id='tests.toy_envs:Nope-v0' is not a registered gymnasium environment; importing "
+        "'tests.toy_envs' did not register 'Nope-v0'",
+    ),
+    (
+        [f"env.id={TOY}", "+env.kwargs.size=3"],
+        "env.kwargs={'size': 3}: CdqnChain-v0's constructor refused them",
+    ),
+    (
+        [f"env.id={TOY}", "env.kwargs.length=4"],
+        "env.kwargs.length: env.kwargs has no such key yet; add it with +env.kwargs.length=<value>",
+    ),
+    (
+        [f"env.id={NO_CAP}"],
+        f"env.max_episode_steps=null: {NO_CAP} is registered without an episode cap "
+        "(max_episode_steps) and none was given; give one, env.max_episode_steps=<steps>",
+    ),
+    (
+        ["env.id=Blackjack-v1"],
+        "env.max_episode_steps=null: Blackjack-v1 is registered without an episode cap",
+    ),
+]
+
+
+@pytest.mark.parametrize(("overrides", "expected"), REFUSED, ids=[" ".join(o) for o, _ in REFUSED])
+def test_refused_with_one_line(overrides: list[str], expected: str) -> None:
+    errors = check_overrides(overrides)
+    assert len(errors) == 1 and errors[0].startswith(expected), errors
+
+
+def test_a_cap_given_or_registered_passes() -> None:
+    assert check_overrides([f"env.id={NO_CAP}", "env.max_episode_steps=20"]) == []
+    assert check_overrides([f"env.id={TOY}", "+env.kwargs.length=4"]) == []
+    for env_id in ("Taxi-v4", "FrozenLake-v1"):
+        assert check_overrides([f"env.id={env_id}"]) == []
+
+
+@pytest.mark.parametrize(
+    ("overrides", "expected"),
+    [
+        ([f"env.id={NO_CAP}"], REFUSED[4][1]),
+        (["env.id=tests.no_such_module:Chain-v0"], REFUSED[0][1]),
+    ],
+)
+def test_cli_refuses_with_one_line_and_exit_2(
+    overrides: list[str], expected: str, tmp_path: Path
+) -> None:
+    proc = run_cli("cdqn.train", [*overrides, f"tracking.uri=sqlite:///{tmp_path}/m.db"], tmp_path)
+    assert proc.returncode == EXIT_CONFIG, proc.stderr
+    assert proc.stderr.strip().splitlines() == [
+        "cdqn: invalid configuration, nothing was started:",
+        f"  - {expected}",
+    ]
+    assert "Traceback" not in proc.stdout and not (tmp_path / "m.db").exists()
+
+
+# --- discrete observations -----------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("env_id", "sizes"),
+    [("Taxi-v4", [500]), ("FrozenLake-v1", [16]), ("CliffWalking-v1", [48]),
+     ("Blackjack-v1", [32, 11, 2])],
+)  # fmt: skip
+def test_discrete_observations_are_one_hot(env_id: str, sizes: list[int]) -> None:
+    env = make_env(EnvConfig(id=env_id, max_episode_steps=20))
+    raw = gym.make(env_id, max_episode_steps=20)
+    assert env_sizes(env)[0] == sum(sizes)
+    offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    obs, state = env.reset(seed=3)[0], raw.reset(seed=3)[0]
+    for t in range(30):
+        parts = state if isinstance(state, tuple) else (state,)
+        assert obs.dtype == np.float32 and obs.sum() == len(sizes)
+        hot = [int(o + s) for o, s in zip(offsets, parts, strict=True)]
+        assert np.flatnonzero(obs).tolist() == hot
+        action = t % int(env.action_space.n)
+        obs, _, term, trunc, _ = env.step(action)
+        state, _, raw_term, raw_trunc, _ = raw.step(action)
+        assert (term, trunc) == (raw_term, raw_trunc)
+        if term or trunc:
+            obs, state = env.reset(seed=t)[0], raw.reset(seed=t)[0]
+
+
+@pytest.mark.parametrize("controller", ["none", "h2"])
+def test_population_on_discrete_observations_equals_single_runs(controller: str) -> None:
+    """A population of FrozenLake (one-hot, its members' own environments) learns, member
+    by member, what the single run of each seed learns, bit for bit."""
+    overrides = [*BASE, "env.id=FrozenLake-v1", "env.max_episode_steps=100",
+                 f"controller={controller}"]  # fmt: skip
+    members = _population(overrides, [3, 4])
+    for m in members:
+        status, _, returns, rows = _single([*overrides, f"seed={m.seed}"])
+        assert m.status == status == "FINISHED"
+        assert m.returns == returns
+        assert np.array_equal(m.signals.state(), rows)
+        if controller == "h2":
+            assert np.abs(rows[:, 5]).sum() > 0  # u acted
+
+
+@pytest.mark.parametrize("env_id", ["FrozenLake-v1", "Taxi-v4"])
+def test_ntk_box_is_measured_on_discrete_observations(env_id: str) -> None:
+    conf = adopt(compose_config([f"env.id={env_id}", "controller=hinf_f", "network=small"])).conf
+    assert conf.controller.synthesis.ntk_bounds == "measured"
+    env = make_env(conf.env)
+    n_obs, n_actions = env_sizes(env)
+    torch.manual_seed(0)
+    box = measured_box(conf, QNetwork(NetworkSpec(n_obs, n_actions, 64, "float64")))
+    assert box is not None and box.source == "measured"
+    assert 0 < box.theta1[0] <= box.theta1[1] and 0 < box.ratio[0] <= box.ratio[1]
+
+
+# --- every entry point, on an id no preset names -----------------------------------------------
+
+
+class Store:
+    """The runs the entry points wrote into one SQLite store."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self.uri = f"sqlite:///{folder / 'mlflow.db'}"
+        self.client = MlflowClient(self.uri)
+
+    def run(self, name: str):  # noqa: ANN201
+        found = [r for r in runs_of(self.uri) if r.info.run_name == name]
+        assert len(found) == 1, [r.info.run_name for r in runs_of(self.uri)]
+        return found[0]
+
+    def artifact(self, run_id: str, path: str) -> Path:
+        return Path(self.client.download_artifacts(run_id, path, tempfile.mkdtemp()))
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory: pytest.TempPathFactory) -> Store:
+    """A single run (synthesised hinf_f, constructor argument step_reward=−2), then a multirun
+    of a single run and a population of two, all ``env.id=tests.toy_envs:CdqnChain-v0``."""
+    st = Store(tmp_path_factory.mktemp("adopt"))
+    common = [f"env.id={TOY}", *SMALL, f"tracking.uri={st.uri}",
+              f"controller.synthesis.cache_dir={st.folder / 'designs'}"]  # fmt: skip
+    single = run_cli(
+        "cdqn.train", [*common, "controller=hinf_f", "+env.kwargs.step_reward=-2.0"], st.folder
+    )
+    assert single.returncode == 0, single.stderr
+    assert f"named {LABEL}, episode cap 50" in single.stdout + single.stderr
+    multi = run_cli(
+        "cdqn.train",
+        ["-m", *common, "controller=none", "seed=10", "train.population=1,2"],
+        st.folder,
+    )
+    assert multi.returncode == 0, multi.stderr
+    return st
+
+
+def _assert_adopted(run, controller: str) -> None:  # noqa: ANN001
+    tags, params = run.data.tags, run.data.params
+    assert (tags["env"], tags["env_id"], tags["controller"]) == (LABEL, TOY, controller)
+    assert params["env.name"] == LABEL
+    assert params["env.max_episode_steps"] == "50"  # the registration's, not CartPole's 200
+    assert params["env.solve_threshold"] == "-12.0"  # not CartPole's 195
+    assert params["controller.synthesis.ntk_bounds"] == "measured"
+
+
+@pytest.mark.slow
+def test_single_run_is_the_environments_with_its_kwargs(store: Store) -> None:
+    run_ = store.run(f"{LABEL}-hinf_f-s0")
+    _assert_adopted(run_, "hinf_f")
+    assert run_.data.params["env.kwargs.step_reward"] == "-2.0"
+    design = json.loads(store.artifact(run_.info.run_id, "design/controller.json").read_text())
+    assert design["box_source"] == "measured"
+    returns = episode_returns(store.client, run_.info.run_id)
+    lengths = [m.value for m in store.client.get_metric_history(run_.info.run_id, "episode_length")]
+    assert returns == [-2.0 * n for n in lengths]  # step_reward=-2 reached the constructor
+
+
+@pytest.mark.slow
+def test_multirun_and_population_runs_are_the_environments(store: Store) -> None:
+    runs = runs_of(store.uri)
+    names = sorted(r.info.run_name for r in runs)
+    assert names == sorted([f"{LABEL}-hinf_f-s0", *[f"{LABEL}-none-s{s}" for s in (10, 10, 11)]])
+    members = [r for r in runs if "population" in r.data.tags]
+    assert sorted(r.data.tags["seed"] for r in members) == ["10", "11"]
+    for r in runs:
+        if r.data.tags["controller"] == "none":
+            _assert_adopted(r, "none")
+            assert r.data.params["env.kwargs"] == "{}"
+
+
+@pytest.mark.slow
+def test_evaluate_builds_the_stored_environment(store: Store) -> None:
+    run_id = store.run(f"{LABEL}-hinf_f-s0").info.run_id
+    args = [f"run_id={run_id}", "episodes=3", f"tracking.uri={store.uri}"]
+    proc = run_cli("cdqn.evaluate", args, store.folder)
+    assert proc.returncode == 0, proc.stderr
+    assert f"run {run_id} on {TOY}: greedy return" in proc.stdout
+    table = pd.read_csv(store.artifact(run_id, "evaluation/returns-seed1000000-n3.csv"))
+    assert (table["return"] == -2.0 * table["length"]).all()  # its env.kwargs, its module
+
+
+@pytest.mark.slow
+def test_synthesize_designs_on_the_environments_own_box(tmp_path: Path) -> None:
+    args = [f"env.id={TOY}", "controller=hinf_f", "network=small", f"out={tmp_path / 'out'}",
+            f"controller.synthesis.cache_dir={tmp_path / 'designs'}"]  # fmt: skip
+    proc = run_cli("cdqn.synthesize", args, tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert f"named {LABEL}, episode cap 50" in proc.stdout + proc.stderr
+    design = json.loads((tmp_path / "out" / "controller.json").read_text())
+    assert design["box_source"] == "measured"
+
+
+@pytest.mark.slow
+def test_bench_takes_an_id(tmp_path: Path) -> None:
+    args = ["--env", TOY, "--controllers", "none", "--width", "16", "--steps", "60", "--warmup",
+            "20", "--repeats", "1", "--population", "2", "--no-estimate", "--json"]  # fmt: skip
+    proc = run_cli("cdqn.bench", args, tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(proc.stdout[proc.stdout.index("{") :])
+    assert (result["env"], result["env_id"]) == (LABEL, TOY)
+    assert result["controllers"]["none"]["steps_per_s"] > 0
+
+
+@pytest.mark.slow
+def test_resume_continues_the_environments_run(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A run of the toy id stopped by SIGTERM after its first episode, then continued by
+    ``python -m cdqn.train resume=<id>`` in a new process (which imports the module again)."""
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    arm = signals_after_episode(monkeypatch)
+    arm(1)
+    stopped = run(
+        compose_config([f"env.id={TOY}", *SMALL, "controller=none", f"tracking.uri={uri}"]),
+        progress=False,
+    )
+    assert stopped.status == "KILLED"
+    proc = run_cli("cdqn.train", [f"resume={stopped.run_id}", f"tracking.uri={uri}"], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    resumed = MlflowClient(uri).get_run(stopped.run_id)
+    assert resumed.info.status == "FINISHED" and resumed.info.run_name == f"{LABEL}-none-s0"
+    _assert_adopted(resumed, "none")
+    assert len(episode_returns(MlflowClient(uri), stopped.run_id)) == 3

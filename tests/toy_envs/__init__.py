@@ -1,0 +1,51 @@
+"""A package that registers toy environments when imported, as a user's own package does:
+``env.id=tests.toy_envs:CdqnChain-v0`` imports it first (``gymnasium.make``'s
+``<module>:<Id>``).
+
+``CdqnChain-v0``: walk right along a chain of ``length`` cells (``Box`` observation, two
+actions), capped at 50 steps; ``CdqnChainNoCap-v0``: the same, registered without an
+episode cap."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.spaces import Box, Discrete
+
+
+class Chain(gym.Env):
+    """Cells ``0 … length−1``, start at 0; action 1 moves right, 0 left, each reversed with
+    probability ``slip``; every step pays ``step_reward``; the episode terminates at the
+    last cell.  Observation ``[x, 1 − x]`` with ``x`` the position scaled to [0, 1]."""
+
+    metadata: dict[str, Any] = {"render_modes": []}
+
+    def __init__(self, length: int = 8, slip: float = 0.1, step_reward: float = -1.0) -> None:
+        self.length, self.slip, self.step_reward = length, slip, step_reward
+        self.observation_space = Box(0.0, 1.0, (2,), dtype=np.float32)
+        self.action_space = Discrete(2)
+        self.pos = 0
+
+    def _obs(self) -> np.ndarray:
+        x = self.pos / (self.length - 1)
+        return np.array([x, 1.0 - x], dtype=np.float32)
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        self.pos = 0
+        return self._obs(), {}
+
+    def step(self, action: int) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        move = 1 if action == 1 else -1
+        if self.np_random.random() < self.slip:
+            move = -move
+        self.pos = min(max(self.pos + move, 0), self.length - 1)
+        return self._obs(), self.step_reward, self.pos == self.length - 1, False, {}
+
+
+gym.register("CdqnChain-v0", entry_point=Chain, max_episode_steps=50, reward_threshold=-12.0)
+gym.register("CdqnChainNoCap-v0", entry_point=Chain)
