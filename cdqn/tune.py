@@ -21,7 +21,7 @@ import sys
 from pathlib import Path
 
 import hydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from cdqn.config import ConfigError
 from cdqn.control.errors import DesignError
@@ -35,10 +35,9 @@ CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
 def check_tune(cfg: DictConfig) -> None:
     """What ``python -m cdqn.tune`` refuses (for :func:`cdqn.cli.preflight`)."""
-    from cdqn.envs import adopt_env_id  # noqa: PLC0415
+    from cdqn.envs import adopt  # noqa: PLC0415 (gymnasium only when needed)
 
-    adopt_env_id(cfg)
-    validate_tune(OmegaConf.to_object(cfg))  # type: ignore[arg-type]
+    validate_tune(adopt(cfg).conf)  # type: ignore[arg-type]
 
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="tune")

@@ -345,3 +345,40 @@ def test_resume_continues_the_environments_run(
     assert resumed.info.status == "FINISHED" and resumed.info.run_name == f"{LABEL}-none-s0"
     _assert_adopted(resumed, "none")
     assert len(episode_returns(MlflowClient(uri), stopped.run_id)) == 3
+
+
+@pytest.mark.slow
+def test_tune_studies_the_environment_as_itself(tmp_path: Path) -> None:
+    """``python -m cdqn.tune env.id=<module>:<Id>``: the study, its preset, its trial and
+    member runs are the environment's (label, cap, threshold), every design is certified on
+    a box measured on the environment's own network and observation map, and the preset
+    trains that environment again."""
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    args = [f"env.id={TOY}", "controller=hinf_f", "network=small", f"tracking.uri={uri}",
+            f"tune.storage=sqlite:///{tmp_path / 'optuna.db'}",
+            f"tune.preset_dir={tmp_path / 'presets'}", "tune.trials=1", "tune.seeds=2",
+            "tune.episodes=4", "tune.eval_seeds=0", "tune.pruner.kind=none",
+            f"controller.synthesis.cache_dir={tmp_path / 'designs'}"]  # fmt: skip
+    proc = run_cli("cdqn.tune", args, tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    out = proc.stdout + proc.stderr
+    assert f"named {LABEL}, episode cap 50" in out and f"study {LABEL}-hinf_f" in out
+    assert "study cartpole" not in out and "(cartpole," not in out  # no member named so
+    client = MlflowClient(uri)
+    exp = client.get_experiment_by_name("cdqn-tune")
+    runs = client.search_runs([exp.experiment_id])
+    parent = next(r for r in runs if r.data.tags.get("kind") == "tune")
+    assert parent.info.run_name == f"tune-{LABEL}-hinf_f" and parent.data.tags["env"] == LABEL
+    members = [r for r in runs if "population" in r.data.tags]
+    assert sorted(r.info.run_name for r in members) == [f"{LABEL}-hinf_f-s100",
+                                                        f"{LABEL}-hinf_f-s101"]  # fmt: skip
+    for r in members:
+        assert (r.data.tags["env"], r.data.tags["env_id"]) == (LABEL, TOY)
+        assert r.data.params["env.max_episode_steps"] == "50"
+        assert r.data.params["env.solve_threshold"] == "-12.0"
+        # the box measured once for the study, written into the design's configuration
+        assert r.data.params["controller.synthesis.ntk_bounds"] == "config"
+    preset = tmp_path / "presets" / "weights" / f"tuned_{LABEL}-hinf_f.yaml"
+    tuned = OmegaConf.load(preset)
+    assert (tuned.env.id, tuned.env.name) == (TOY, LABEL)
+    assert (tuned.env.max_episode_steps, tuned.env.solve_threshold) == (50, -12.0)

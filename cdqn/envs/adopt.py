@@ -36,7 +36,7 @@ from omegaconf import DictConfig, OmegaConf, read_write
 
 from cdqn.config import Config, ConfigError, EnvConfig, validate
 from cdqn.envs.make import env_label, registration
-from cdqn.envs.presets import env_presets
+from cdqn.envs.presets import CONF_DIR, env_presets
 
 BOX_SOURCES = ("config", "measured")
 """Where the robust designs' NTK box comes from (``controller.synthesis.ntk_bounds``)."""
@@ -103,10 +103,15 @@ def _take_registration(env: DictConfig, preset: EnvConfig, spec: EnvSpec) -> lis
 
 
 def _box_of_its_own(cfg: DictConfig) -> list[str]:
-    """``ntk_bounds=measured`` when the weights preset is another environment's."""
+    """``ntk_bounds=measured`` when the box is another environment's: the weights preset
+    belongs to an environment preset of another id and ``weights.theta_bounds`` is still that
+    preset's box (a box set for this run, e.g. one a study measured, stays)."""
     weights_env = env_presets().get(str(cfg.weights.name))
     syn = cfg.controller.synthesis
     if weights_env is None or weights_env.id == cfg.env.id or syn.ntk_bounds == "measured":
+        return []
+    shipped = OmegaConf.load(CONF_DIR / "weights" / f"{cfg.weights.name}.yaml").theta_bounds
+    if OmegaConf.to_container(cfg.weights.theta_bounds) != OmegaConf.to_container(shipped):
         return []
     syn.ntk_bounds = "measured"
     return [f"NTK box measured (weights={cfg.weights.name} are {weights_env.id}'s)"]

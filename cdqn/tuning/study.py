@@ -36,12 +36,13 @@ class Study:
     """The study of ``cfg`` (a composed ``conf/tune.yaml``)."""
 
     def __init__(self, cfg: DictConfig) -> None:
-        from cdqn.envs import adopt_env_id  # noqa: PLC0415 (gymnasium only when needed)
+        from cdqn.envs import adopt  # noqa: PLC0415 (gymnasium only when needed)
 
-        cfg = copy.deepcopy(cfg)
-        if (adopted := adopt_env_id(cfg)) is not None:
-            log.info("%s", adopted)
-        self.conf: TuneConfig = OmegaConf.to_object(cfg)  # type: ignore[assignment]
+        adopted = adopt(cfg)  # the study's environment: label, cap, threshold, box source
+        if adopted.change is not None:
+            log.info("%s", adopted.change)
+        cfg = adopted.cfg
+        self.conf: TuneConfig = adopted.conf  # type: ignore[assignment]
         validate_tune(self.conf)
         self.cfg = cfg
         t = self.conf.tune
