@@ -53,18 +53,20 @@ class EnvConfig:
     """Map every observation feature with finite bounds affinely to [−1, 1]."""
     normalize_scale: list[float] | None = None
     """With normalize: the half-width w of each observed feature's range, [−w, w] instead of
-    [−1, 1] (one per feature; null: 1 for all).  Weighs features in the NTK (docs/learning.md)."""
+    [−1, 1] (one per feature; null: 1 for all).  Weighs features in the NTK
+    (docs/research/learning.md)."""
     rbf_centres: int | None = None
     """Radial basis features: Gaussians centred on a grid of this many points per observed
     feature over the (scaled) observation box, fed to the network instead of the
-    observation (null: the observation itself).  Makes the NTK local (docs/learning.md)."""
+    observation (null: the observation itself).  Makes the NTK local (docs/research/learning.md)."""
     rbf_width: float = 1.0
     """With rbf_centres: each Gaussian's standard deviation in grid spacings."""
     solve_threshold: float | None = 195.0
     """Moving-average return (100 episodes) at which the task counts as solved."""
     eps_dec: float = 1e-4
     """This environment's decrease of ε, taken by train.eps_dec (research code: 1e-4 per
-    random action; Acrobot: 5e-6 per step, docs/learning.md)."""
+    random action; Acrobot: 9.3e-4 per episode, 1 to 0.01 at episode 1064;
+    docs/research/learning.md, §5)."""
     eps_schedule: str = "random_action"
     """What lowers ε by eps_dec, taken by train.eps_schedule: ``random_action`` (research
     code), ``step`` (every step: linear in steps) or ``episode`` (every episode start)."""
@@ -235,7 +237,7 @@ class WeightsConfig:
     """Episodic replay of the controlled agents."""
     reset_integrator: IntegratorReset = field(default_factory=IntegratorReset)
     """Whether each controlled agent resets the integrator x_e at each episode start on this
-    environment (taken by controller.reset_integrator; docs/learning.md)."""
+    environment (taken by controller.reset_integrator; docs/research/learning.md)."""
     ddqn: DDQNSettings = field(default_factory=DDQNSettings)
     """Double DQN on this environment (controller=ddqn takes controller.lr,
     controller.target_update, env.normalize and env.rbf_centres from here)."""
@@ -323,7 +325,7 @@ class ControllerConfig:
     target_update: int = 500
     """DDQN: environment steps between target-network copies."""
     discount: float | None = None
-    """DDQN: γ of its TD target; null: train.discount (docs/ddqn.md, γ and the time limit)."""
+    """DDQN: γ of its TD target; null: train.discount (docs/ddqn.md, "What it computes")."""
     lr: float | None = None
     """DDQN: α of its SGD step; null: train.lr (controller=ddqn sets weights.ddqn.lr)."""
 

@@ -74,7 +74,7 @@ def test_exploration_schedule_follows_the_env_unless_train_sets_it() -> None:
     research = (1e-4, "random_action")
     assert schedule("env=cartpole") == schedule("env=mountaincar") == research
     assert schedule("env=cartpole_pole") == schedule("env.id=LunarLander-v3") == research
-    assert schedule("env=acrobot") == (9.3e-4, "episode")  # docs/learning.md, section 5
+    assert schedule("env=acrobot") == (9.3e-4, "episode")  # docs/research/learning.md, section 5
     assert schedule("env=acrobot", "train.eps_dec=3e-4") == (3e-4, "episode")
     assert schedule("env=acrobot", "train.eps_schedule=step") == (9.3e-4, "step")
     assert schedule("env=cartpole", "env.eps_dec=2e-5", "env.eps_schedule=step") == (2e-5, "step")

@@ -110,8 +110,8 @@ def _pinned_target(
     Why a point: the LQR gains move with ρ = Θ2/Θ1, and ρ jumps between transitions whose next
     greedy action repeats the action (Θ2 holds the ``[a == b]`` term of the NTK) and those whose
     does not; a γ_eff projected per step then takes different values on the two kinds, so the
-    Bellman equation being learned depends on the transition (docs/learning.md, "One learning
-    target per design")."""
+    Bellman equation being learned depends on the transition (docs/research/learning.md, "One
+    learning target per design")."""
     from cdqn.control.h2 import scheduled_gains  # noqa: PLC0415 (import time, as above)
 
     k1, k2, _ = scheduled_gains(

@@ -167,7 +167,7 @@ def check_target(target: TargetBox, box: NTKBox, scheduled: bool = False) -> Non
             f"{target.key('gamma_eff')}={list(target.gamma_eff)}: need -1 <= γ_eff <= 1; the "
             "effective Bellman operator r/(1 + k1) + γ_eff·max Q(s') is a contraction only for "
             "|γ_eff| < 1, and learning that once solved CartPole with γ_eff = −2.5 collapsed "
-            "when its episodes stopped terminating (docs/learning.md)"
+            "when its episodes stopped terminating (docs/research/learning.md)"
         )
     rho_max = box.ratio[1]
     if scheduled and target.rho_cap is not None:

@@ -109,7 +109,7 @@ class RadialFeatures(gym.ObservationWrapper):
     The NTK of the two-layer ReLU network compares inputs through ``x·y`` and the angle
     between them: on raw or scaled observations every pair of states is similar to it, so one
     online step moves Q over the whole state space alike.  On ``φ`` two states far apart share
-    no features, and a step mostly moves Q near the state it learns from (docs/learning.md,
+    no features, and a step mostly moves Q near the state it learns from (docs/research/learning.md,
     §6: Mountain car's controlled agents learn with them)."""
 
     MAX_FEATURES = 4096
