@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 from cdqn.tuning.objective import area, ma100, padded
 from cdqn.tuning.pruner import EpisodeMedianPruner
 from cdqn.tuning.report import summary_text
-from cdqn.tuning.settings import TuneSettings, episode_budget
+from cdqn.tuning.settings import PrunerConfig, TuneSettings, episode_budget, warmup
 from cdqn.tuning.space import apply, fit_to_observation, sample
 from cdqn.tuning.study import Study, _with_controller
 from tests.conftest import CONF_DIR
@@ -71,6 +71,7 @@ def _overrides(tmp: Path, study: str, trials: int, extra: list[str] | None = Non
         "tune.space.step_scale.high=0.8",
         "~tune.space.w_p",
         *ONLY_TARGET,
+        "controller.synthesis.ntk_bounds=config",  # CartPole's box: 1/ρ_max = 1/1.2
         *(extra or []),
     ]
 
@@ -537,3 +538,9 @@ def test_both_agents_tuned_alike_compared_and_their_presets_reproduce_the_settin
         else:
             assert cfg.train.lr == pytest.approx(best["lr"])
             assert cfg.controller.synthesis.ntk_bounds == "config"
+
+
+def test_the_pruner_waits_a_quarter_of_the_episodes_by_default() -> None:
+    assert warmup(PrunerConfig(), 600) == 150
+    assert warmup(PrunerConfig(), 100) == 50
+    assert warmup(PrunerConfig(warmup_episodes=7), 600) == 7

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 from optuna.pruners import BasePruner, NopPruner
 
-from cdqn.tuning.settings import PrunerConfig
+from cdqn.tuning.settings import PrunerConfig, warmup
 
 
 class EpisodeMedianPruner(BasePruner):
@@ -44,8 +44,8 @@ class EpisodeMedianPruner(BasePruner):
         return math.isnan(value) or value < float(np.nanmedian(others))
 
 
-def make_pruner(settings: PrunerConfig) -> BasePruner:
-    """The study's pruner (``tune.pruner.kind``)."""
+def make_pruner(settings: PrunerConfig, episodes: int) -> BasePruner:
+    """The study's pruner (``tune.pruner.kind``) for trials of ``episodes`` episodes."""
     if settings.kind == "none":
         return NopPruner()
-    return EpisodeMedianPruner(settings.startup_trials, settings.warmup_episodes)
+    return EpisodeMedianPruner(settings.startup_trials, warmup(settings, episodes))

@@ -46,8 +46,9 @@ class PrunerConfig:
     the complete trials' at the same episode) or none."""
     startup_trials: int = 3
     """Trials that complete before any is pruned."""
-    warmup_episodes: int = 50
-    """Episodes before a trial can be pruned."""
+    warmup_episodes: int | None = None
+    """Episodes before a trial can be pruned (null: a quarter of the episode budget, at least
+    50: the first episodes are mostly random play, and J_n there says little)."""
     interval: int = 25
     """Episodes between the intermediate values reported to Optuna."""
 
@@ -112,6 +113,12 @@ def episode_budget(t: TuneSettings, cap: int | None) -> int:
     if not cap:
         return t.max_episodes
     return int(min(t.max_episodes, max(t.min_episodes, t.steps // cap)))
+
+
+def warmup(p: PrunerConfig, episodes: int) -> int:
+    """The pruner's warm-up in episodes: ``tune.pruner.warmup_episodes``, else a quarter of
+    ``episodes`` (at least 50)."""
+    return p.warmup_episodes if p.warmup_episodes is not None else max(50, episodes // 4)
 
 
 def validate_tune(conf: TuneConfig) -> None:

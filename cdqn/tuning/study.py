@@ -151,7 +151,7 @@ class Study:
                 study_name=t.study,
                 storage=open_storage(t.storage),
                 direction="maximize",
-                pruner=make_pruner(t.pruner),
+                pruner=make_pruner(t.pruner, self.episodes),
                 load_if_exists=True,
             )
             self.parent = self.tracker.parent(study, self.conf, self.cfg)
