@@ -17,6 +17,14 @@ with that seed starts.  Steps go through one of two implementations:
 * :class:`GymLoop` — any other environment: a loop over the members' environments.
 
 Both count steps and truncate at the environment's ``TimeLimit`` as gymnasium does.
+
+Checkpoints: a twin's member, and a :class:`GymLoop` member of a classic control
+environment, is captured between any two steps (:meth:`VectorEnv.state_dict`).  Any other
+environment is captured at its episode boundaries (:meth:`VectorEnv.boundary_state`): after
+an episode ended and before the reset that starts the next, what the next episodes depend on
+is the environment's ``np_random``, from which gymnasium environments draw their resets
+(LunarLander's terrain and initial push, for example); a freshly made environment given that
+generator resets and steps as the original does (``tests/test_resume.py``).
 """
 
 from __future__ import annotations
@@ -71,6 +79,25 @@ class VectorEnv(Protocol):
         ...
 
     def load_state_dict(self, i: int, state: dict[str, Any]) -> None: ...
+
+    def boundary_state(self, i: int) -> dict[str, Any]:
+        """Member ``i``'s environment between two episodes (any environment)."""
+        ...
+
+    def load_boundary_state(self, i: int, state: dict[str, Any]) -> None:
+        """Put member ``i`` of fresh environments into ``state``; its next call is a reset."""
+        ...
+
+
+def boundary_state(env: gym.Env) -> dict[str, Any]:
+    """``env`` after an episode ended and before the next reset: its ``np_random`` state
+    (module docstring)."""
+    return {"np_random": _rng_state(env)}
+
+
+def load_boundary_state(env: gym.Env, state: dict[str, Any]) -> None:
+    """Inverse of :func:`boundary_state`, into a freshly made ``env``."""
+    _set_rng_state(env, state["np_random"])
 
 
 class _Wrappers(NamedTuple):
@@ -142,8 +169,15 @@ class GymLoop:
     @property
     def checkpointable(self) -> bool:
         """Whether :meth:`state_dict` can capture the members mid-episode (the classic
-        control environments, whose whole state is ``state`` and the step count)."""
+        control environments, whose whole state is ``state`` and the step count); every
+        member can be captured at its episode boundaries (:meth:`boundary_state`)."""
         return all(type(_unwrap(env).base) in ClassicControlTwin.KINDS for env in self.envs)
+
+    def boundary_state(self, i: int) -> dict[str, Any]:
+        return boundary_state(self.envs[i])
+
+    def load_boundary_state(self, i: int, state: dict[str, Any]) -> None:
+        load_boundary_state(self.envs[i], state)
 
     def state_dict(self, i: int) -> dict[str, Any]:
         """Member ``i``'s environment between two steps (classic control only)."""
@@ -282,6 +316,12 @@ class ClassicControlTwin:
     def load_state_dict(self, i: int, state: dict[str, Any]) -> None:
         self.state[i], self.elapsed[i] = state["state"], state["elapsed"]
         _set_rng_state(self.envs[i], state["np_random"])
+
+    def boundary_state(self, i: int) -> dict[str, Any]:
+        return boundary_state(self.envs[i])
+
+    def load_boundary_state(self, i: int, state: dict[str, Any]) -> None:
+        load_boundary_state(self.envs[i], state)
 
     def step(self, actions: np.ndarray) -> VectorStep:
         k = len(actions)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import socket
@@ -145,6 +146,41 @@ def signals_after_episode(monkeypatch: pytest.MonkeyPatch) -> Callable[..., None
         armed.update(episode=episode, signals=signals or (signal.SIGTERM,))
 
     return arm
+
+
+def signals_after_checkpoint(monkeypatch: pytest.MonkeyPatch) -> Iterator[Callable[..., None]]:
+    """``arm(n, SIGINT, ...)``: once the ``n``-th checkpoint is logged ("checkpoint at ..."
+    on the ``cdqn`` logger; a population's logs one line per checkpoint), this process sends
+    itself those signals when the next episode is recorded; for a fixture."""
+    armed: dict[str, object] = {}
+    original = Recorder.log_episode
+
+    class Seen(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            if armed and record.getMessage().startswith("checkpoint at"):
+                armed["left"] = int(armed["left"]) - 1  # type: ignore[call-overload]
+
+    def log_episode(self: Recorder, stats: EpisodeStats) -> None:
+        original(self, stats)
+        if armed and int(armed["left"]) <= 0:  # type: ignore[call-overload]
+            signals = armed.pop("signals")
+            armed.clear()
+            for sig in signals:  # type: ignore[attr-defined]
+                os.kill(os.getpid(), sig)
+
+    handler = Seen(logging.INFO)
+    logger = logging.getLogger("cdqn")
+    logger.addHandler(handler)
+    level = logger.level
+    logger.setLevel(logging.INFO)
+    monkeypatch.setattr(Recorder, "log_episode", log_episode)
+
+    def arm(checkpoints: int, *signals: int) -> None:
+        armed.update(left=checkpoints, signals=signals or (signal.SIGTERM,))
+
+    yield arm
+    logger.removeHandler(handler)
+    logger.setLevel(level)
 
 
 class MlflowServer:

@@ -22,7 +22,7 @@ from cdqn.config import ConfigError, EnvConfig
 from cdqn.envs.wrappers import ObservationScale, ObservationSubset, OneHot, RadialFeatures
 
 EXTRAS = {
-    "box2d": 'pip install swig, then pip install "gymnasium[box2d]"',
+    "box2d": 'pip install "gymnasium[box2d]"',
     "mujoco": 'pip install "gymnasium[mujoco]"',
 }
 """Install commands of gymnasium's optional environment families."""

@@ -24,12 +24,15 @@ single runs (:func:`cdqn.training.run.run_population`).
 
 A population checkpoints as a whole (:mod:`cdqn.training.population_checkpoint`): each time
 its slowest member has completed another ``train.checkpoint_every`` episodes, and when
-SIGINT/SIGTERM stops it (at the end of the current population step), every member's state
-goes into its own run's checkpoint slots and the members still training are closed KILLED
-with ``resume=<run_id>`` in their ``failure_reason``.  ``python -m cdqn.train
-resume=<run_id>`` on any member continues every unfinished member of its population
-(:func:`resume_population`), bit for bit as if uninterrupted; a restarted sweep with
-``tracking.skip_finished=true`` does the same for its KILLED members.
+SIGINT/SIGTERM stops it, every member's state goes into its own run's checkpoint slots and
+the members still training are closed KILLED with ``resume=<run_id>`` in their
+``failure_reason``.  Members of CartPole, Acrobot and MountainCar are captured between two
+steps (a signal stops the population at the end of the current population step); members
+of any other environment at their own episode boundaries (a signal lets each member finish
+its current episode; the schedule is in :mod:`cdqn.training.population_loop`).
+``python -m cdqn.train resume=<run_id>`` on any member continues every unfinished member of
+its population (:func:`resume_population`), bit for bit as if uninterrupted; a restarted
+sweep with ``tracking.skip_finished=true`` does the same for its KILLED members.
 """
 
 from __future__ import annotations
@@ -63,10 +66,11 @@ from cdqn.training.population_checkpoint import (
     MemberClosing,
     capture_member,
     common_sequence,
+    loadable,
     restore_member,
     stored_config,
 )
-from cdqn.training.population_loop import Member, train_population
+from cdqn.training.population_loop import Checkpoints, Member, train_population
 from cdqn.training.population_step import ControlledPopulation
 from cdqn.training.result import OUTAGE, PopulationResult, RunResult
 from cdqn.training.sweep import (
@@ -213,38 +217,36 @@ def train_members(
             if m.recorder is not None:
                 m.recorder.flush_seconds = math.inf
 
-    def on_checkpoint(
-        items: list[tuple[int, Member]], obs: np.ndarray, t: np.ndarray, ret: np.ndarray
-    ) -> None:
-        counter[0] += 1
-        ids = [m.recorder.run_id for _, m in items if m.recorder is not None]
-        ckpts = [
-            capture_member(counter[0], ids, m, agent, venv, j, obs, t, ret,
-                           m.signals.n if conf.train.signals else 0)
-            for j, m in items
-        ]  # fmt: skip
+    boundaries = not venv.checkpointable  # members captured at their episode boundaries
+
+    def capture(
+        j: int, m: Member, obs: np.ndarray, t: np.ndarray, ret: np.ndarray
+    ) -> MemberCheckpoint:
+        rows = m.signals.n if conf.train.signals else 0
+        return capture_member(0, [], m, agent, venv, j, obs, t, ret, rows, boundaries)
+
+    def write(items: list[tuple[Member, MemberCheckpoint]], new: bool) -> None:
+        counter[0] += new
+        ids = [m.recorder.run_id for m, _ in items if m.recorder is not None]
+        for _, ckpt in items:
+            ckpt.sequence, ckpt.population = counter[0], ids
         if not outage:
             try:
-                for (_, m), ckpt in zip(items, ckpts, strict=True):
+                for m, ckpt in items:
                     assert m.recorder is not None
                     m.recorder.flush()
                     stores[m.seed].save(ckpt, m.signals, announce=False)
-                    m.checkpointed = m.episode
-                first, last = min(m.episode for _, m in items), max(m.episode for _, m in items)
+                    m.checkpointed = ckpt.episode
+                first = min(c.episode for _, c in items)
+                last = max(c.episode for _, c in items)
                 span = f"episode {first}" if first == last else f"episodes {first}-{last}"
-                log.info("checkpoint at %s (%d members)", span, len(items))
+                what = f"{len(items)} members" if len(items) > 1 else f"seed {items[0][0].seed}"
+                log.info("checkpoint at %s (%s)", span, what)
             except TrackingOutage as err:
                 went_away(err)
         if outage:  # every member of this checkpoint into its local file, one sequence
-            for (_, m), ckpt in zip(items, ckpts, strict=True):
+            for m, ckpt in items:
                 _write_local(folder, m, ckpt)
-
-    if not venv.checkpointable:
-        log.warning(
-            "population on %s: no checkpoints (only CartPole, Acrobot and MountainCar members "
-            "can be captured mid-episode); an interrupted member is trained again",
-            conf.env.id,
-        )
 
     def on_episode(m: Member, stats: object) -> None:
         assert m.recorder is not None
@@ -261,6 +263,8 @@ def train_members(
 
     def killed_reason(m: Member, during: str) -> str:
         assert m.recorder is not None
+        if boundaries:
+            during = during.replace("during episode", "after episode", 1)
         if m.checkpointed is None:
             return f"{during}; no checkpoint yet, resume={m.recorder.run_id} trains it again"
         where = (
@@ -310,8 +314,9 @@ def train_members(
                 on_member_end=on_member_end,
                 progress=progress and conf.train.progress,
                 should_stop=stopping,
-                on_checkpoint=on_checkpoint if venv.checkpointable else None,
-                checkpoint_every=conf.train.checkpoint_every,
+                checkpoints=Checkpoints(
+                    conf.train.checkpoint_every, venv.checkpointable, capture, write
+                ),
                 replay=conf.weights.replay if conf.controller.name != "ddqn" else None,
                 box=box,
             )
@@ -329,7 +334,7 @@ def train_members(
             for env in envs:
                 env.close()
     if outage:
-        message = _outage_message(outage[0], members, conf, venv.checkpointable)
+        message = _outage_message(outage[0], members, conf)
         log.error("%s", message)
         for m in members:
             results[m.seed].reason = message
@@ -339,13 +344,12 @@ def train_members(
 def _write_local(folder: str, m: Member, ckpt: MemberCheckpoint) -> None:
     """Member ``m``'s checkpoint and its metrics not yet written, in its local file."""
     assert m.recorder is not None
-    save_local(folder, m.recorder.run_id, ckpt, m.signals, m.recorder.pending)
-    m.checkpointed = m.episode
+    pending = [p for p in m.recorder.pending if p[3] < ckpt.episode]  # its episodes only
+    save_local(folder, m.recorder.run_id, ckpt, m.signals, pending)
+    m.checkpointed = ckpt.episode
 
 
-def _outage_message(
-    err: TrackingOutage, members: list[Member], conf: Config, checkpointable: bool
-) -> str:
+def _outage_message(err: TrackingOutage, members: list[Member], conf: Config) -> str:
     """What a population stopped by an outage says: the server, the local files, the
     command that continues it."""
     ids = [m.recorder.run_id for m in members if m.recorder is not None]
@@ -354,8 +358,6 @@ def _outage_message(
     where = (
         f"checkpoints of the members (episodes completed by seed: {episodes}) written locally "
         f"to {folder}/<run id>/ for the runs {', '.join(ids)}"
-        if checkpointable
-        else f"no local checkpoint ({conf.env.id} members cannot be captured mid-episode)"
     )
     return (
         f"{err}. The population stopped: {where}; its runs stay RUNNING in the store. When "
@@ -428,12 +430,12 @@ def resume_population(uri: str, tracking: Any, runs: list, progress: bool) -> Po
         }
         found = {m.seed: stores[m.seed].candidates() for m in members}
         sequence = max((c.sequence for items in found.values() for c, _ in items), default=0)
-        common = common_sequence(found) if venv.checkpointable else None
+        common = common_sequence(found)
         chosen = {}
         if common is not None:
             for m in members:
                 ckpt, slot = next(c for c in found[m.seed] if c[0].sequence == common)
-                if not stores[m.seed].complete(ckpt, slot):
+                if not loadable(ckpt, venv) or not stores[m.seed].complete(ckpt, slot):
                     chosen = {}
                     break
                 chosen[m.seed] = ckpt
@@ -448,7 +450,11 @@ def resume_population(uri: str, tracking: Any, runs: list, progress: bool) -> Po
             for m, r in zip(members, runs, strict=True)
         }
         seqs = {item[0].sequence for item in local.values() if item is not None}
-        if venv.checkpointable and None not in local.values() and len(seqs) == 1:
+        if (
+            None not in local.values()
+            and len(seqs) == 1
+            and all(loadable(item[0], venv) for item in local.values())  # type: ignore[index]
+        ):
             if (newest := seqs.pop()) >= (common or 0):
                 log.info("continuing the population from its local checkpoints in %s",
                          Path(folder).resolve())  # fmt: skip

@@ -1,24 +1,29 @@
 """Checkpoints of populations: every member's state between two population steps.
 
-A population (:mod:`cdqn.training.population`) checkpoints as a whole: each time its slowest member
-has completed another ``train.checkpoint_every`` episodes, and when SIGINT/SIGTERM stops
-it.  Members' episodes have different lengths, so at that moment most members are inside
-an episode; a member's checkpoint therefore holds everything between two steps, not only
-what an episode boundary needs.  Each member's checkpoint is stored in its own MLflow run,
-in the slots of a single run (:class:`cdqn.training.checkpoint.CheckpointStore`), as a
-:class:`MemberCheckpoint`:
+A population (:mod:`cdqn.training.population`) checkpoints as a whole: each time its slowest
+member has completed another ``train.checkpoint_every`` episodes, and when SIGINT/SIGTERM
+stops it.  Members' episodes have different lengths, so at that moment most members are
+inside an episode.  Where the environments can be captured between two steps (CartPole,
+Acrobot, MountainCar, :mod:`cdqn.vector_env`) a member's checkpoint holds everything
+between two steps; for any other environment each member is captured at its own episode
+boundary (``loop`` is None; the schedule is in :mod:`cdqn.training.population_loop`), and
+the members of one checkpoint may stand at different episodes.  Each member's checkpoint
+is stored in its own MLflow run, in the slots of a single run
+(:class:`cdqn.training.checkpoint.CheckpointStore`), as a :class:`MemberCheckpoint`:
 
 * ``agent``: the population agent's ``state_dict(i)`` for the member's row ``i``;
 * ``env``: the vectorised environment's ``state_dict(i)`` (the physical state, the step
-  count of the time limit, the member's ``np_random``);
+  count of the time limit, the member's ``np_random``); at an episode boundary its
+  ``boundary_state(i)`` (the member's ``np_random``);
 * ``loop``: the training loop's per-member values: observation ``obs``, step ``t`` within
   the episode, return so far ``ret`` and the signal rows of the episode in progress
-  ``rows`` (its metrics are computed from them when it ends);
+  ``rows`` (its metrics are computed from them when it ends); None at an episode boundary
+  (the member starts its next episode with a reset);
 * the episode counter, the returns and the signal rows so far;
 * ``sequence`` and ``population``: the number of the checkpoint and the run ids of every
   member it captured.  Members restored together must come from the same checkpoint (they
-  share one exploration plan position), so resume picks the newest ``sequence`` that every
-  member still to train holds in one of its slots.
+  share one exploration plan), so resume picks the newest ``sequence`` that every member
+  still to train holds in one of its slots.
 
 The population agent's checkpoint protocol (what a batched agent provides so that its
 populations checkpoint and resume bit for bit)::
@@ -47,6 +52,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from cdqn.config import Config, ConfigError
+from cdqn.training.signals import COLUMNS
 from cdqn.training.tracking import CONFIG_ARTIFACT
 
 
@@ -72,7 +78,8 @@ class MemberCheckpoint:
     signal_rows: int
     agent: dict[str, Any]
     env: dict[str, Any]
-    loop: dict[str, Any]
+    loop: dict[str, Any] | None
+    """The loop's values between two steps; None: captured at an episode boundary."""
     signals: np.ndarray | None = None
     """The signal rows, filled in by :meth:`cdqn.training.checkpoint.CheckpointStore.complete`."""
 
@@ -106,8 +113,10 @@ def capture_member(
     t: np.ndarray,
     ret: np.ndarray,
     signal_rows: int,
+    boundary: bool = False,
 ) -> MemberCheckpoint:
-    """Snapshot of ``member`` (row ``i`` of ``agent`` and ``venv``) between two steps."""
+    """Snapshot of ``member`` (row ``i`` of ``agent`` and ``venv``) between two steps, or
+    (``boundary``) between two of its episodes, before the reset that starts the next."""
     return MemberCheckpoint(
         sequence=sequence,
         population=list(population),
@@ -115,8 +124,10 @@ def capture_member(
         returns=[float(r) for r in member.returns],
         signal_rows=signal_rows,
         agent=agent.state_dict(i),
-        env=venv.state_dict(i),
-        loop={
+        env=venv.boundary_state(i) if boundary else venv.state_dict(i),
+        loop=None
+        if boundary
+        else {
             "obs": np.array(obs[i]),
             "t": int(t[i]),
             "ret": float(ret[i]),
@@ -133,13 +144,27 @@ def restore_member(
 ) -> None:
     """Put ``member`` and row ``i`` of a freshly built ``agent`` and ``venv`` into ``ckpt``."""
     agent.load_state_dict(i, ckpt.agent)
-    venv.load_state_dict(i, ckpt.env)
+    if ckpt.loop is None:
+        venv.load_boundary_state(i, ckpt.env)
+    else:
+        venv.load_state_dict(i, ckpt.env)
     member.episode = ckpt.episode
     member.returns = list(ckpt.returns)
-    member.carry = dict(ckpt.loop)
+    member.carry = None if ckpt.loop is None else dict(ckpt.loop)
     member.checkpointed = ckpt.episode
     # all rows so far, or (signals not stored) those of the episode in progress
-    member.signals.load(ckpt.signals if ckpt.signals is not None else ckpt.loop["rows"])
+    if ckpt.signals is not None:
+        member.signals.load(ckpt.signals)
+    elif ckpt.loop is not None:
+        member.signals.load(ckpt.loop["rows"])
+    else:
+        member.signals.load(np.empty((0, len(COLUMNS))))
+
+
+def loadable(ckpt: MemberCheckpoint, venv: Any) -> bool:
+    """Whether ``venv`` can continue from ``ckpt`` (a capture between two steps needs
+    environments that can be put mid-episode)."""
+    return ckpt.loop is None or bool(venv.checkpointable)
 
 
 def common_sequence(found: dict[str, list[tuple[MemberCheckpoint, int]]]) -> int | None:

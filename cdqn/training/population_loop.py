@@ -5,6 +5,27 @@ call of the batched agent (:mod:`cdqn.training.population_step`,
 :mod:`cdqn.training.ddqn_population`) and of the vectorised environment
 (:mod:`cdqn.vector_env`) per population step, each member's signal rows and divergence test
 as a single run has them, members leaving the batch when they finish or diverge.
+
+Checkpoints (:class:`Checkpoints`, written by :mod:`cdqn.training.population`) follow one
+of two schedules, by what the environments allow (:mod:`cdqn.vector_env`):
+
+* **between two steps** (CartPole, Acrobot, MountainCar): each time the slowest member has
+  completed another ``every`` episodes, and when a stop is asked, every member is captured
+  at that population step, most of them inside an episode;
+* **at episode boundaries** (any other environment): checkpoint ``n`` is due when the
+  slowest member has completed ``D_n`` episodes (a multiple of ``every``).  Each member is
+  captured at its own first episode boundary with at least ``D_n`` episodes completed
+  (after the episode is recorded, before the reset that starts the next), and the capture
+  is held until every member still training has one; then all are written as checkpoint
+  ``n``, and ``D_{n+1}`` is the next multiple of ``every`` above the slowest member's
+  count.  A stop drains the population: the members keep stepping, each is captured at
+  the end of its current episode and leaves the batch KILLED with its checkpoint written,
+  all of them into one checkpoint; a second signal stops at once (the last periodic
+  checkpoint is then the one to resume from).  A resumed member starts its next episode
+  with a reset from its restored ``np_random``; as its numbers depend on nothing but its
+  own state, members restored at different episodes (and population steps) continue
+  exactly as they would have (the shared exploration plan is realigned,
+  :meth:`cdqn.training.population_step.ExplorationPlan.load_state_dict`).
 """
 
 from __future__ import annotations
@@ -12,7 +33,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from omegaconf import DictConfig
@@ -56,6 +77,82 @@ class Member:
     @property
     def score(self) -> float:
         return float(np.mean(self.returns[-100:])) if self.returns else float("nan")
+
+
+@dataclass
+class Checkpoints:
+    """How the loop checkpoints a population (module docstring)."""
+
+    every: int
+    """Episodes of the slowest member between two periodic checkpoints (0: only at a stop)."""
+    mid_episode: bool
+    """Members are captured between any two steps; else each at its episode boundaries."""
+    capture: Callable[[int, Member, np.ndarray, np.ndarray, np.ndarray], Any]
+    """``capture(j, m, obs, t, ret)``: member ``m`` (row ``j``) as it stands now."""
+    write: Callable[[list[tuple[Member, Any]], bool], None]
+    """``write(captured, new)``: store the captures as a new checkpoint (``new``) or into
+    the one written last (a drain's members, one after another)."""
+
+
+class _Schedule:
+    """When members are captured and checkpoints written (module docstring)."""
+
+    def __init__(self, ckpts: Checkpoints | None, members: list[Member]) -> None:
+        self.ckpts = ckpts
+        self.every = ckpts.every if ckpts is not None else 0
+        self.due = self.next_due(members)
+        self.pending: dict[int, Any] = {}
+        """Captures at episode boundaries for the checkpoint due, by seed."""
+        self.draining = False
+        self.drained = 0
+
+    @property
+    def at_boundaries(self) -> bool:
+        return self.ckpts is not None and not self.ckpts.mid_episode
+
+    def next_due(self, members: list[Member]) -> int:
+        slowest = min(m.episode for m in members)
+        return (slowest // self.every + 1) * self.every if self.every else 0
+
+    def boundary(self, j: int, m: Member, obs: np.ndarray, t: np.ndarray, ret: np.ndarray) -> bool:
+        """Member ``m`` (row ``j``) completed an episode and goes on: capture it if this is
+        its boundary; True when it leaves the batch (a drain)."""
+        c = self.ckpts
+        if c is None or c.mid_episode:
+            return False
+        if self.draining:
+            c.write([(m, c.capture(j, m, obs, t, ret))], self.drained == 0)
+            self.drained += 1
+            m.status = "KILLED"
+            return True
+        if self.every and m.episode >= self.due and m.seed not in self.pending:
+            self.pending[m.seed] = c.capture(j, m, obs, t, ret)
+        return False
+
+    def drain(self) -> bool:
+        """A stop was asked: True when the members drain (at episode boundaries)."""
+        if self.at_boundaries:
+            self.draining = True
+            self.pending.clear()
+        return self.draining
+
+    def periodic(
+        self, members: list[Member], capture_all: Callable[[], list[tuple[Member, Any]]]
+    ) -> None:
+        """After a population step: write the checkpoint due, if it is complete."""
+        c = self.ckpts
+        if c is None or not self.every or self.draining:
+            return
+        if c.mid_episode:
+            if min(m.episode for m in members) < self.due:
+                return
+            c.write(capture_all(), True)
+        elif all(m.seed in self.pending for m in members):
+            c.write([(m, self.pending[m.seed]) for m in members], True)
+            self.pending.clear()
+        else:
+            return
+        self.due = self.next_due(members)
 
 
 class _Staging:
@@ -103,9 +200,7 @@ def train_population(
     progress: bool = False,
     should_stop: Callable[[], bool] | None = None,
     max_steps: int | None = None,
-    on_checkpoint: Callable[[list[tuple[int, Member]], np.ndarray, np.ndarray, np.ndarray], None]
-    | None = None,
-    checkpoint_every: int = 0,
+    checkpoints: Checkpoints | None = None,
     replay: ReplayConfig | None = None,
     box: Box | None = None,
 ) -> None:
@@ -119,22 +214,23 @@ def train_population(
     ``box``: the design's NTK box, for ``theta1_outside_box``, ``ratio_below_box``
     and ``ratio_above_box``.
 
-    ``on_checkpoint(items, obs, t, ret)`` (items: ``(row, member)`` pairs) is called between
-    two steps, with every member's signal rows flushed: each time the slowest member has
-    completed another ``checkpoint_every`` episodes, and when ``should_stop`` stops the
-    loop.  A member with a ``carry`` continues from it instead of starting with a reset.
+    ``checkpoints``: when and how members are captured and written (module docstring);
+    with every member's signal rows flushed.  A member with a ``carry`` continues from it
+    instead of starting with a reset; one without starts its next episode with a reset,
+    seeded with its seed at its first episode.
     """
     members = list(members)
-    first = [venv.reset(j, m.seed) if m.carry is None else m.carry["obs"]
-             for j, m in enumerate(members)]  # fmt: skip
+    first = [
+        venv.reset(j, m.seed if m.episode == 0 else None) if m.carry is None else m.carry["obs"]
+        for j, m in enumerate(members)
+    ]
     obs = np.stack(first)
     for j, m in enumerate(members):
         if m.carry is None:
             agent.start_episode(j)
     t = np.array([m.carry["t"] if m.carry else 0 for m in members], dtype=np.int64)
     ret = np.array([m.carry["ret"] if m.carry else 0.0 for m in members])
-    every = checkpoint_every if on_checkpoint is not None else 0
-    due = (min(m.episode for m in members) // every + 1) * every if every else 0
+    schedule = _Schedule(checkpoints, members)
     ep = np.array([m.episode for m in members], dtype=float)
     staging = _Staging(len(members))
     tail = None
@@ -145,12 +241,18 @@ def train_population(
             if m.carry is not None and m.carry.get("replay_tail") is not None:
                 tail.restore(j, Transitions(**m.carry["replay_tail"]))
 
-    def with_tails(items: list[tuple[int, Member]]) -> list[tuple[int, Member]]:
-        """``items`` with each member's transitions of the episode in progress attached."""
+    def capture_now(items: list[tuple[int, Member]]) -> list[tuple[Member, Any]]:
+        """``items`` captured between two steps (signal rows flushed, each member's
+        transitions of the episode in progress attached)."""
+        assert checkpoints is not None
+        staging.flush_all(members)
         for j, m in items:
             if tail is not None:
                 m.replay_tail = tail.transitions(j, min(int(t[j]), replay.last or int(t[j])))  # type: ignore[union-attr]
-        return items
+        return [(m, checkpoints.capture(j, m, obs, t, ret)) for j, m in items]
+
+    def capture_all() -> list[tuple[Member, Any]]:
+        return capture_now(list(enumerate(members)))
 
     bar = tqdm(total=episodes * len(members), disable=not progress, unit="ep", leave=True)
     steps = 0
@@ -229,17 +331,21 @@ def train_population(
                         m.status = "FINISHED"
                         leaving.append(j)
                         continue
+                    if schedule.boundary(j, m, obs, t, ret):
+                        leaving.append(j)
+                        continue
                     obs[j] = venv.reset(j, None)
                     agent.start_episode(j)
                     t[j], ret[j], ep[j] = 0, 0.0, m.episode
             steps += 1
-            stop = should_stop is not None and should_stop()
+            stop = not schedule.draining and should_stop is not None and should_stop()
+            if stop and schedule.drain():  # each member leaves at the end of its episode
+                stop = False
             if stop or (max_steps is not None and steps >= max_steps):
                 gone = set(leaving)
                 survivors = [(j, m) for j, m in enumerate(members) if j not in gone]
-                if stop and on_checkpoint is not None and survivors:
-                    staging.flush_all(members)
-                    on_checkpoint(with_tails(survivors), obs, t, ret)
+                if stop and checkpoints is not None and survivors:
+                    checkpoints.write(capture_now(survivors), True)
                 for m in members:
                     if m.status == "RUNNING":
                         m.status = "KILLED"
@@ -259,10 +365,7 @@ def train_population(
                     tail.select(keep)
                 staging.select(keep, members)
                 obs, t, ret, ep = obs[keep], t[keep], ret[keep], ep[keep]
-            if every and (slowest := min(m.episode for m in members)) >= due:
-                staging.flush_all(members)
-                assert on_checkpoint is not None
-                on_checkpoint(with_tails(list(enumerate(members))), obs, t, ret)
-                due = (slowest // every + 1) * every
+            if schedule.every:
+                schedule.periodic(members, capture_all)
     finally:
         bar.close()

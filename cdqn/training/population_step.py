@@ -156,14 +156,8 @@ class ExplorationPlan:
     def next(self) -> np.ndarray:
         """This step's decisions ``(K,)``: a random action, or −1 for the greedy one."""
         if self.pos == len(self.plan):
-            for k, rng in enumerate(self.rngs):
-                if self.per_episode:
-                    draw_ahead(rng, self.n_actions, self.uniform[:, k], self.plan[:, k])
-                    continue
-                self.epsilon[k] = explore_ahead(
-                    rng, self.epsilon[k], self.eps_end, self.eps_dec, self.per_step,
-                    self.n_actions, self.plan[:, k],
-                )  # fmt: skip
+            for k in range(len(self.rngs)):
+                self._draw(k, 0)
             self.pos = 0
         self.pos += 1
         if not self.per_episode:
@@ -175,6 +169,18 @@ class ExplorationPlan:
         """``eps_schedule=episode``: member ``i``'s ε falls by ``eps_dec`` (to ``eps_end``)."""
         if self.per_episode and self.epsilon[i] > self.eps_end:
             self.epsilon[i] = max(self.eps_end, self.epsilon[i] - self.eps_dec)
+
+    def _draw(self, k: int, start: int) -> None:
+        """Fill member ``k``'s rows ``start:`` of the plan with its next decisions (per
+        episode: draws); ε after them (per step and per decision schedules)."""
+        plan = self.plan[start:, k]
+        if self.per_episode:
+            draw_ahead(self.rngs[k], self.n_actions, self.uniform[start:, k], plan)
+            return
+        self.epsilon[k] = explore_ahead(
+            self.rngs[k], self.epsilon[k], self.eps_end, self.eps_dec, self.per_step,
+            self.n_actions, plan,
+        )  # fmt: skip
 
     def select(self, keep: np.ndarray) -> None:
         self.rngs = [self.rngs[i] for i in keep]
@@ -193,15 +199,37 @@ class ExplorationPlan:
         return state
 
     def load_state_dict(self, i: int, state: dict[str, Any]) -> None:
-        """Restore member ``i``; every member of a plan shares one position in it, so all
-        members restored into one plan must come from the same population step."""
+        """Restore member ``i`` into a fresh plan (every member is restored, one after
+        another).
+
+        The members share one position in the plan, but members captured at different
+        population steps (each at its own episode boundary) hold different numbers of
+        undrawn decisions.  The position becomes that of the member holding the most; a
+        member holding fewer has its undrawn decisions moved to the position and the rest of
+        its rows drawn now from its generator.  Decisions depend on nothing but the member's
+        generator and ε, and drawing ``n`` of them in one call or in several gives the same
+        decisions and generator state (:func:`cdqn.agents.base.explore_ahead`), so every
+        member continues with the decisions it would have taken."""
         self.rngs[i].bit_generator.state = state["rng"]
         self.epsilon[i] = state["epsilon"]
         undrawn = np.asarray(state["undrawn"], dtype=np.int64)
-        self.pos = len(self.plan) - len(undrawn)
-        self.plan[self.pos :, i] = undrawn
+        block = len(self.plan)
+        start = block - len(undrawn)
+        if start < self.pos:  # the others move up to the earlier position and draw more
+            held = block - self.pos
+            for k in range(len(self.rngs)):
+                if k != i:
+                    self.plan[start : start + held, k] = self.plan[self.pos :, k].copy()
+                    if self.per_episode:
+                        self.uniform[start : start + held, k] = self.uniform[self.pos :, k].copy()
+                    self._draw(k, start + held)
+            self.pos = start
+        self.plan[self.pos : self.pos + len(undrawn), i] = undrawn
         if self.per_episode:
-            self.uniform[self.pos :, i] = np.asarray(state["undrawn_uniform"], dtype=float)
+            self.uniform[self.pos : self.pos + len(undrawn), i] = np.asarray(
+                state["undrawn_uniform"], dtype=float
+            )
+        self._draw(i, self.pos + len(undrawn))
 
 
 class ControlledPopulation:
