@@ -81,6 +81,7 @@ from cdqn.training.tracking import (
     Recorder,
     TrackingOutage,
     check_tracking,
+    closes_for_good,
     fail_fast_http,
     flatten,
     git_commit,
@@ -279,7 +280,7 @@ def train_members(
             )
         if not outage:
             try:
-                finish_member(m, net, conf)
+                finish_member(m, net, conf, box=box)
             except TrackingOutage as err:
                 went_away(err)
         status = m.status
@@ -588,15 +589,23 @@ def start_member_run(
     return rec
 
 
-def finish_member(m: Member, net: QNetwork | None, conf: Config, model: Path | None = None) -> None:
+def finish_member(
+    m: Member,
+    net: QNetwork | None,
+    conf: Config,
+    model: Path | None = None,
+    box: Box | None = None,
+) -> None:
     """Signals, model (of ``net``, or the saved one in folder ``model``) and status of
-    member ``m``'s run, as a single run writes them.  A store that went away
-    (:class:`TrackingOutage`) leaves the run open."""
+    member ``m``'s run, as a single run writes them (``box``: the design's NTK box, drawn
+    with the signal series).  A store that went away (:class:`TrackingOutage`) leaves the
+    run open."""
     rec = m.recorder
     assert rec is not None
     try:
         if conf.train.signals:
-            rec.log_signals(m.signals, conf.train.lr)
+            final = closes_for_good(m.status, m.reason)
+            rec.log_signals(m.signals, conf.train.lr, box, final)
         if conf.tracking.log_model and net is not None:
             with tempfile.TemporaryDirectory() as tmp:
                 save_network(net, Path(tmp))

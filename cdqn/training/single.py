@@ -47,6 +47,7 @@ from cdqn.training.sweep import config_hash, process_tags
 from cdqn.training.tracking import (
     Recorder,
     TrackingOutage,
+    closes_for_good,
     fail_fast_http,
     flatten,
     git_commit,
@@ -286,7 +287,9 @@ def _close_run(
     try:
         try:
             if conf.train.signals:
-                recorder.log_signals(signals, conf.train.lr)
+                recorder.log_signals(
+                    signals, conf.train.lr, job.setup.box(), closes_for_good(status, reason)
+                )
             if conf.tracking.log_model:
                 with tempfile.TemporaryDirectory() as tmp:
                     save_network(job.net, Path(tmp))

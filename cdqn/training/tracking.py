@@ -29,8 +29,9 @@ from mlflow.store.artifact.artifact_repository_registry import get_artifact_repo
 from mlflow.tracking import MlflowClient
 
 from cdqn.config import EXPERIMENT_TAGS, ConfigError
+from cdqn.control.box import Box
 from cdqn.training.loop import EpisodeStats
-from cdqn.training.signals import SignalBuffer, amplitude_spectra
+from cdqn.training.signals import SeriesPoint, SignalBuffer, amplitude_spectra, signal_series
 
 log = logging.getLogger("cdqn")
 T = TypeVar("T")
@@ -209,6 +210,12 @@ def git_commit() -> str:
     return sha + ("+dirty" if dirty else "")
 
 
+def closes_for_good(status: str, reason: str | None) -> bool:
+    """Whether a run closed with ``status`` and ``reason`` is never continued (FINISHED, or
+    FAILED by divergence), so that its signal series are logged once, for the whole run."""
+    return status == "FINISHED" or (status == "FAILED" and (reason or "").startswith("diverged"))
+
+
 class Recorder:
     """Writes one cdqn run into an MLflow store."""
 
@@ -328,16 +335,28 @@ class Recorder:
             f"artifacts {artifact_path}/",
         )
 
-    def log_signals(self, signals: SignalBuffer, dt: float) -> None:
+    def log_signals(
+        self, signals: SignalBuffer, dt: float, box: Box | None = None, series: bool = True
+    ) -> None:
         """``signals/steps.parquet`` and ``signals/fft.parquet`` (columns in
-        :mod:`cdqn.training.signals`)."""
+        :mod:`cdqn.training.signals`); with ``series``, also the downsampled signals and
+        spectra as metric series (:func:`cdqn.training.signals.signal_series`, ``box`` the
+        design's NTK box) in one batch, which MLflow draws on the run's page."""
         steps = signals.to_frame()
+        spectra = amplitude_spectra(steps, dt)
         with tempfile.TemporaryDirectory() as tmp:
             steps.to_parquet(Path(tmp) / "steps.parquet", compression="zstd", index=False)
-            amplitude_spectra(steps, dt).to_parquet(
-                Path(tmp) / "fft.parquet", compression="zstd", index=False
-            )
+            spectra.to_parquet(Path(tmp) / "fft.parquet", compression="zstd", index=False)
             self._retry(lambda: self.client.log_artifacts(self.run_id, tmp, "signals"), "signals/")
+        if series:
+            self.log_series(signal_series(signals.rows(0), spectra, box))
+
+    def log_series(self, points: list[SeriesPoint]) -> None:
+        """Write ``points`` (at most 1000, one ``log_batch``) as metrics of the run."""
+        ts = int(time.time() * 1000)
+        batch = [Metric(p.key, p.value, ts, p.step) for p in points]
+        if batch:
+            self._retry(lambda: self.client.log_batch(self.run_id, metrics=batch), "series")
 
     def delete_artifacts(self, artifact_path: str) -> None:
         """Remove the run's artifacts under ``artifact_path`` (e.g. its resume checkpoints);
