@@ -76,6 +76,7 @@ from cdqn.training.sweep import (
     find_finished,
     find_resumable,
     process_tags,
+    run_name,
 )
 from cdqn.training.tracking import (
     Recorder,
@@ -574,7 +575,7 @@ def start_member_run(
     rec = Recorder.start(
         uri,
         conf.tracking.experiment,
-        f"{conf.env.name}-{conf.controller.name}-s{m.seed}",
+        run_name(conf, m.seed),
         flatten(container),  # type: ignore[arg-type]
         tags,
         config=container,  # type: ignore[arg-type]

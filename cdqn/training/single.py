@@ -43,7 +43,7 @@ from cdqn.training.loop import DivergenceError, EpisodeStats, TrainState, train
 from cdqn.training.population_checkpoint import stored_config
 from cdqn.training.result import OUTAGE, RunResult
 from cdqn.training.signals import SignalBuffer
-from cdqn.training.sweep import config_hash, process_tags
+from cdqn.training.sweep import config_hash, process_tags, run_name
 from cdqn.training.tracking import (
     Recorder,
     TrackingOutage,
@@ -82,7 +82,7 @@ def start_run(cfg: DictConfig, conf: Config, env: gym.Env, uri: str, progress: b
         recorder = Recorder.start(
             uri,
             conf.tracking.experiment,
-            f"{conf.env.name}-{conf.controller.name}-s{conf.seed}",
+            run_name(conf),
             params,
             tags,
             config=container,  # type: ignore[arg-type]

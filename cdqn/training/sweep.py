@@ -31,7 +31,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from cdqn.config import EXPERIMENT_TAGS, resolve_tracking_uri
+from cdqn.config import EXPERIMENT_TAGS, Config, NetworkConfig, TrainConfig, resolve_tracking_uri
 
 try:
     import fcntl
@@ -233,3 +233,30 @@ def resumable_elsewhere(cfg: DictConfig, uri: str) -> str | None:
     """The run id a restarted sweep continues for ``cfg`` (:func:`find_resumable`), or None."""
     run = find_resumable(MlflowClient(uri), str(cfg.tracking.experiment), config_hash(cfg))
     return run.info.run_id if run is not None else None
+
+
+NAME_PARTS = (
+    ("network.width", "w"),
+    ("train.episodes", "e"),
+    ("train.lr", "lr"),
+    ("train.discount", "g"),
+)
+"""Settings a run name shows, each with its letter, when they differ from the defaults of
+:class:`cdqn.config.Config` (the paper's: width 2500, 2000 episodes, α = 5e-5, γ = 1)."""
+
+
+def run_name(conf: Config, seed: int | None = None) -> str:
+    """``<env.name>-<controller>[-w<width>][-e<episodes>][-lr<α>][-g<γ>]-s<seed>``: what
+    tells a run apart from others in the MLflow runs table, e.g. ``cartpole-hinf-s0`` with
+    the paper's settings, ``cartpole-hinf-w64-e50-s0`` for a quick look.  Every other
+    setting is in the run's params and tags (``config_hash`` identifies the whole
+    configuration)."""
+    parts = [conf.env.name, conf.controller.name]
+    defaults = {"network": NetworkConfig(), "train": TrainConfig()}
+    for key, letter in NAME_PARTS:
+        group, field = key.split(".")
+        value = getattr(getattr(conf, group), field)
+        if value != getattr(defaults[group], field):
+            parts.append(f"{letter}{value:g}")
+    parts.append(f"s{conf.seed if seed is None else seed}")
+    return "-".join(parts)
