@@ -31,7 +31,14 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from cdqn.config import EXPERIMENT_TAGS, Config, NetworkConfig, TrainConfig, resolve_tracking_uri
+from cdqn.config import (
+    EXPERIMENT_TAGS,
+    Config,
+    ConfigError,
+    NetworkConfig,
+    TrainConfig,
+    resolve_tracking_uri,
+)
 
 try:
     import fcntl
@@ -162,7 +169,8 @@ def ensure_store(uri: str, experiment: str, attempts: int = 5) -> None:
 
     For a SQLite store this happens under an exclusive lock on ``<database>.lock``: a fresh
     store's first migration, run by several processes at once, fails and leaves the
-    database unusable (a half-finished ``_alembic_tmp_*`` table).  Other errors are retried.
+    database unusable (a half-finished ``_alembic_tmp_*`` table).  Other errors are retried,
+    then raised as :class:`cdqn.config.ConfigError` (exit status 2, one line).
     """
     for attempt in range(attempts):
         try:
@@ -173,7 +181,10 @@ def ensure_store(uri: str, experiment: str, attempts: int = 5) -> None:
             return
         except Exception as err:
             if attempt == attempts - 1:
-                raise
+                raise ConfigError(
+                    f"tracking.uri={uri!r}: the store cannot be opened "
+                    f"({type(err).__name__}: {' '.join(str(err).split())[:300]})"
+                ) from None
             delay = 0.2 * 2**attempt * (1 + random.random())
             log.warning("tracking store %s not ready (%s); retrying in %.1f s", uri, err, delay)
             time.sleep(delay)
