@@ -143,6 +143,11 @@ def start_population(
             m.recorder = start_member_run(
                 m, conf, setup, uri, f"{seeds[0]}-{seeds[-1]}", population_id
             )
+        log.info(
+            "MLflow runs %s (%s, %s, seeds %d-%d)",
+            ", ".join(m.recorder.run_id for m in members if m.recorder is not None),
+            conf.env.name, conf.controller.name, members[0].seed, members[-1].seed,
+        )  # fmt: skip
     except BaseException:
         for env in venv.envs:
             env.close()
@@ -234,7 +239,7 @@ def train_members(
                     m.checkpointed = m.episode
                 first, last = min(m.episode for _, m in items), max(m.episode for _, m in items)
                 span = f"episode {first}" if first == last else f"episodes {first}-{last}"
-                log.info("checkpoint at %s (%d members)", span, len(items))
+                log.debug("checkpoint at %s (%d members)", span, len(items))
             except TrackingOutage as err:
                 went_away(err)
         if outage:  # every member of this checkpoint into its local file, one sequence
@@ -260,6 +265,7 @@ def train_members(
 
     stop = GracefulStop()
     t0 = time.perf_counter()
+    before = {m.seed: m.signals.n for m in members}  # steps of resumed members
 
     def killed_reason(m: Member, during: str) -> str:
         assert m.recorder is not None
@@ -292,7 +298,8 @@ def train_members(
         seconds = time.perf_counter() - t0
         results[m.seed] = RunResult(
             m.recorder.run_id, status, m.score, m.reason, returns=list(m.returns),
-            steps=m.signals.n, seconds=seconds, rate=m.signals.n / seconds,
+            steps=m.signals.n, seconds=seconds, rate=(m.signals.n - before[m.seed]) / seconds,
+            steps_before=before[m.seed],
             epsilon=float(pop.epsilon[j]), solve_threshold=conf.env.solve_threshold,
         )  # fmt: skip
 
@@ -584,7 +591,7 @@ def start_member_run(
         rec.log_dict(setup.design, "design/controller.json")
     if setup.artifacts is not None:
         rec.log_dir(setup.artifacts, "design")
-    log.info(
+    log.debug(
         "MLflow run %s (%s, %s, seed %d)", rec.run_id, conf.env.name, conf.controller.name, m.seed
     )
     return rec

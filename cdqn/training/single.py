@@ -268,6 +268,7 @@ def _train(
         steps=state.total_steps,
         seconds=seconds,
         rate=(state.total_steps - start_steps) / seconds if seconds > 0 else math.nan,
+        steps_before=start_steps,
         epsilon=float(job.agent.epsilon),
         solve_threshold=conf.env.solve_threshold,
     )
