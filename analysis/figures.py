@@ -40,6 +40,7 @@ from analysis.style import (  # noqa: E402
     env_text,
     ordered,
 )
+from cdqn.training.signals import ROUND_OFF, log_binned_max  # noqa: E402
 
 FIGURE_METRICS = ("return_ma100", "loss_mean")
 """The episode metrics the figures read (the rest come from per-step artifacts)."""
@@ -51,6 +52,8 @@ MAX_LINE_POINTS = 100_000
 """Longer per-step series are drawn as a per-bin min-max envelope."""
 MAX_SCATTER_POINTS = 30_000
 """The NTK scatter draws a fixed random subset of at most this many steps."""
+FFT_BINS = 800
+"""Log-spaced frequency bins of the FFT figure (the largest amplitude of each is drawn)."""
 BOUND_STYLE: dict[str, Any] = {"color": "tab:red", "lw": 1.4, "ls": "--"}
 
 
@@ -111,11 +114,29 @@ class FigureContext:
         hit = runs[(runs["env"] == env) & (runs["controller"] == controller)]
         if hit.empty:
             raise Skip(f"no {env}/{controller} run in the store")
+        hit = hit[hit["settings"] == self.group(env, hit)] if "settings" in hit else hit
         if seed is not None:
             hit = hit[hit["seed"] == seed]
             if hit.empty:
                 raise Skip(f"no {env}/{controller} run with seed {seed}")
         return hit.sort_values(["seed", "start_time"]).iloc[0]
+
+    def group(self, env: str, hit: pd.DataFrame) -> str:
+        """The settings group of ``env`` the single-run figures show: of those ``hit`` has,
+        the one with the most runs of ``env`` (the table's largest group; ``--where``
+        narrows the runs to one), the latest on a tie; a note names the others."""
+        runs = self.runs[self.runs["env"] == env]
+        counts = runs.groupby("settings")["start_time"].agg(["size", "max"])
+        counts = counts[counts.index.isin(set(hit["settings"]))]
+        chosen = str(counts.sort_values(["size", "max"]).index[-1])
+        others = [str(g) for g in counts.index if g != chosen]
+        note = (
+            f"single-run figures of {env} show the group [{chosen}] ({counts.loc[chosen, 'size']} "
+            f"runs); not [{'], ['.join(others)}] (choose with --where)"
+        )
+        if others and note not in self.notes:
+            self.notes.append(note)
+        return chosen
 
     @cached_property
     def selected(self) -> pd.Series:
@@ -132,8 +153,16 @@ class FigureContext:
             raise Skip(f"run {run['run_name']} has no signals/steps.parquet")
         return steps
 
-    def run_title(self, run: pd.Series) -> str:
-        return f"{env_text(run['env'])}, {controller_label(run['controller'])}, seed {run['seed']}"
+    def run_title(self, run: pd.Series, what: str = "") -> str:
+        """``<Env>, <controller>, seed <s>[: what]`` and, below, the run's name and id."""
+        head = f"{env_text(run['env'])}, {controller_label(run['controller'])}, seed {run['seed']}"
+        return f"{head}{': ' + what if what else ''}\nrun {run['run_name']} ({run['run_id'][:8]})"
+
+    def window_text(self, steps: pd.DataFrame) -> str:
+        """``episodes 1-500 of 2000`` for the steps a window figure shows."""
+        total = _param(self.selected, "train.episodes")
+        shown = steps["episode"].nunique()
+        return f"episodes 1-{shown}" + (f" of {total}" if total is not None else "")
 
 
 # ---------------------------------------------------------------------------- helpers
@@ -151,6 +180,11 @@ def _episode_axis(steps: pd.DataFrame) -> np.ndarray:
     """Continuous episode coordinate (from 1): episode + fraction of the episode done."""
     length = steps.groupby("episode")["step"].transform("max").to_numpy() + 1
     return steps["episode"].to_numpy() + 1 + steps["step"].to_numpy() / length
+
+
+def _legend(ax: Axes) -> None:
+    """The legend right of the axes, off the data (constrained layout makes room)."""
+    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0, fontsize="small")
 
 
 def _trace(ax: Axes, x: np.ndarray, y: np.ndarray, **kw: Any) -> None:
@@ -171,18 +205,6 @@ def _trace(ax: Axes, x: np.ndarray, y: np.ndarray, **kw: Any) -> None:
         label=kw.get("label"),
         rasterized=True,
     )
-
-
-def _log_binned_max(freq: np.ndarray, amp: np.ndarray, bins: int = 800) -> tuple[Any, Any]:
-    """Max amplitude per log-spaced frequency bin (keeps the peaks of a long spectrum)."""
-    keep = freq > 0
-    freq, amp = freq[keep], amp[keep]
-    if len(freq) <= 2 * bins:
-        return freq, amp
-    edges = np.geomspace(freq[0], freq[-1] * (1 + 1e-12), bins + 1)
-    idx = np.searchsorted(edges, freq, side="right") - 1
-    frame = pd.DataFrame({"b": idx, "f": freq, "a": amp}).groupby("b")
-    return frame["f"].mean().to_numpy(), frame["a"].max().to_numpy()
 
 
 def _one_episode(ctx: FigureContext) -> tuple[pd.DataFrame, int]:
@@ -231,7 +253,7 @@ def learning(ctx: FigureContext, env: str) -> Figure:
         for ctrl in CONTROLLER_ORDER[:4]
         if ctrl not in present
     ]
-    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    fig, ax = plt.subplots(figsize=(8.4, 4.0))
     settings = sorted(eps["settings"].unique()) if "settings" in eps else [""]
     styles = dict(zip(settings, ["-", "--", ":", "-."] * len(settings), strict=False))
     longest = int(eps["episode"].max()) + 1
@@ -273,7 +295,7 @@ def learning(ctx: FigureContext, env: str) -> Figure:
     ax.set_xlabel("episode")
     ax.set_ylabel("return, 100-episode moving average")
     ax.set_title(f"{env_text(env)}: mean $\\pm$ std over seeds (number of seeds)")
-    ax.legend(loc="best", fontsize="small")
+    _legend(ax)
     return fig
 
 
@@ -320,8 +342,8 @@ def q_window(ctx: FigureContext) -> Figure:
     )
     ax.set_xlabel("episode")
     ax.set_ylabel(r"$Q$ value")
-    ax.set_title(f"{ctx.run_title(ctx.selected)}: first {steps['episode'].nunique()} episodes")
-    ax.legend(loc="best")
+    ax.set_title(ctx.run_title(ctx.selected, ctx.window_text(steps)))
+    _legend(ax)
     return fig
 
 
@@ -334,8 +356,8 @@ def q_episode(ctx: FigureContext) -> Figure:
     ax.set_xlabel(r"step $k$ in the episode")
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_ylabel(r"$Q$ value")
-    ax.set_title(f"{ctx.run_title(ctx.selected)}: episode {episode}")
-    ax.legend(loc="best")
+    ax.set_title(ctx.run_title(ctx.selected, f"episode {episode}"))
+    _legend(ax)
     return fig
 
 
@@ -352,7 +374,7 @@ def u_window(ctx: FigureContext) -> Figure:
     )
     ax.set_xlabel("episode")
     ax.set_ylabel(r"control input $u$")
-    ax.set_title(f"{ctx.run_title(ctx.selected)}: first {steps['episode'].nunique()} episodes")
+    ax.set_title(ctx.run_title(ctx.selected, ctx.window_text(steps)))
     return fig
 
 
@@ -364,7 +386,7 @@ def u_episode(ctx: FigureContext) -> Figure:
     ax.set_xlabel(r"step $k$ in the episode")
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_ylabel(r"control input $u$")
-    ax.set_title(f"{ctx.run_title(ctx.selected)}: episode {episode}")
+    ax.set_title(ctx.run_title(ctx.selected, f"episode {episode}"))
     return fig
 
 
@@ -389,8 +411,8 @@ def theta_training(ctx: FigureContext) -> Figure:
     inside = np.mean((steps["theta1"] > bounds.theta1[0]) & (steps["theta1"] < bounds.theta1[1]))
     ax.set_xlabel("episode")
     ax.set_ylabel(r"$\Theta_1 = \Theta((s,a),(s,a))$")
-    ax.set_title(f"{ctx.run_title(run)}: {100 * inside:.0f}% of steps inside")
-    ax.legend(loc="best")
+    ax.set_title(ctx.run_title(run, f"{100 * inside:.0f}% of steps inside"))
+    _legend(ax)
     return fig
 
 
@@ -432,7 +454,7 @@ def ntk_range(ctx: FigureContext) -> Figure:
     ax.set_xlabel(r"$\Theta_1 = \Theta((s,a),(s,a))$")
     ax.set_ylabel(r"$\Theta_2 = \Theta((s,a),(s',a'))$")
     ax.set_title(f"NTK evaluations: {ctx.run_title(run)}")
-    ax.legend(loc="upper left", fontsize="small")
+    _legend(ax)
     return fig
 
 
@@ -446,16 +468,22 @@ def fft(ctx: FigureContext) -> Figure:
     spectra = ctx.store.fft(run["run_id"])
     if spectra is None or len(spectra) < 3:
         raise Skip(f"run {run['run_name']} has no signals/fft.parquet")
-    fig, axes = plt.subplots(1, 3, figsize=(11.0, 3.4), sharex=True)
+    fig, axes = plt.subplots(1, 3, figsize=(11.0, 3.6), sharex=True)
     omega = 2 * np.pi * spectra["freq"].to_numpy()
     for ax, col, sym in zip(axes, ("reward", "q1", "q2"), ("r", "Q_1", "Q_2"), strict=True):
         amp = spectra[col].to_numpy()
-        w, peaks = _log_binned_max(omega, amp)
+        w, peaks = log_binned_max(omega, amp, FFT_BINS)
         ax.semilogx(w, peaks, color=ctx.colors[run["controller"]], lw=0.8)
         dc = amp[omega == 0]
         # Round-off content (a constant reward) stays at zero instead of filling the axis.
         top = max(float(np.max(peaks, initial=0.0)), 1e-6 * float(np.abs(dc).max(initial=1.0)))
         ax.set_ylim(0, 1.05 * top)
+        if float(np.max(peaks, initial=0.0)) <= ROUND_OFF * float(np.abs(dc).max(initial=1.0)):
+            ax.set_ylim(0, 1)
+            ax.text(
+                0.5, 0.5, f"${sym}(t)$ is constant:\nno content at $\\omega > 0$",
+                transform=ax.transAxes, ha="center", va="center",
+            )  # fmt: skip
         ax.set_title(f"FFT of ${sym}(t)$")
         ax.set_xlabel(r"$\omega$ [rad/s], $t = k\alpha$")
         if dc.size:
@@ -506,7 +534,7 @@ def weight_bode(ctx: FigureContext) -> Figure:
     ax.set_xlabel(r"$\omega$ [rad/s]")
     ax.set_ylabel("magnitude [dB]")
     ax.set_title(f"{controller_label(controller)} design weights ({env_text(run['env'])})")
-    ax.legend(loc="best")
+    _legend(ax)
     return fig
 
 
@@ -538,7 +566,7 @@ def closed_loop_sv(ctx: FigureContext) -> Figure:
     ax.set_xlabel(r"$\omega$ [rad/s]")
     ax.set_ylabel("singular value [dB]")
     ax.set_title(f"Closed loop: {ctx.run_title(run)}")
-    ax.legend(loc="best")
+    _legend(ax)
     return fig
 
 

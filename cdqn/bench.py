@@ -60,6 +60,7 @@ from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
 import torch  # noqa: E402
 from hydra import compose, initialize_config_dir  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
@@ -73,7 +74,12 @@ from cdqn.training.build import build, build_population, member_config  # noqa: 
 from cdqn.training.loop import DivergenceError, EpisodeStats, TrainState, train  # noqa: E402
 from cdqn.training.population import finish_member, start_member_run  # noqa: E402
 from cdqn.training.population_loop import Member, train_population  # noqa: E402
-from cdqn.training.signals import SignalBuffer  # noqa: E402
+from cdqn.training.signals import (  # noqa: E402
+    COLUMNS,
+    SignalBuffer,
+    amplitude_spectra,
+    signal_series,
+)
 from cdqn.training.tracking import Recorder  # noqa: E402
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
@@ -430,6 +436,29 @@ def signal_write_seconds_per_step(uri: str, rows: int = 100_000) -> float:
     return seconds / rows
 
 
+def signal_series_cost(uri: str, rows: int = 300_000, repeats: int = 3) -> dict[str, float]:
+    """Wall-clock and CPU seconds of turning a run's ``rows`` per-step signals and spectra
+    into metric series and writing them in one batch (:meth:`Recorder.log_series`), medians
+    of ``repeats`` runs; 300,000 rows are a 2000-episode CartPole run at 150 steps."""
+    table = np.random.default_rng(0).normal(size=(rows, 10))
+    table[:, 0], table[:, 1] = np.arange(rows) // 150, np.arange(rows) % 150
+    table[:, 7] = np.abs(table[:, 7]) * 300.0  # Θ1 > 0, so that Θ2/Θ1 is defined
+    spectra = amplitude_spectra(pd.DataFrame(table, columns=list(COLUMNS)), 5e-5)
+    box = ((200.0, 500.0), (0.8, 1.2))
+    wall, cpu, points = [], [], 0
+    for i in range(repeats):
+        recorder = Recorder.start(uri, "bench", f"bench-series-{i}", {}, {})
+        t0, c0 = time.perf_counter(), time.process_time()
+        series = signal_series(table, spectra, box)
+        recorder.log_series(series)
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+        points = len(series)
+        recorder.finish()
+    return {"seconds": _median(wall), "cpu_seconds": _median(cpu), "metrics": points,
+            "rows": rows}  # fmt: skip
+
+
 def _overrides(env: str, controller: str, width: int, uri: str) -> list[str]:
     """``--env`` is a preset (``env=<preset>``) or any id (``env.id=<id>``)."""
     return [
@@ -540,6 +569,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 "speedup": by[main_ctrl]["speedup"],
                 "by_controller": by,
             }
+        result["signal_series"] = signal_series_cost(uri)
         if not args.no_estimate:
             result["estimate"] = estimate_paper_sweep(
                 uri,
@@ -574,6 +604,13 @@ def format_report(r: dict[str, Any]) -> str:
         lines.append(
             f"(MLflow episode metrics: {1e3 * r['metric_write_s_per_episode']:.1f} ms per "
             "episode and run, written in batches, timed apart)"
+        )
+    if "signal_series" in r:
+        ss = r["signal_series"]
+        lines.append(
+            f"(MLflow signal series: {1e3 * ss['seconds']:.1f} ms wall, "
+            f"{1e3 * ss['cpu_seconds']:.1f} ms CPU per run for {ss['metrics']} points in one "
+            f"batch at its end, from {ss['rows']} steps)"
         )
     if "population" in r:
         p = r["population"]

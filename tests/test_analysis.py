@@ -330,7 +330,11 @@ def test_empty_store_is_a_clear_error(
     script: object, store_uri: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     missing = f"sqlite:///{tmp_path / 'nothing.db'}"
-    for uri, experiment in ((missing, "cdqn"), (store_uri, "no-such-experiment")):
+    with pytest.raises(SystemExit) as exc:  # no store at all: exit status 2
+        script.main(["--tracking-uri", missing, "--out", str(tmp_path / "out")])  # type: ignore[attr-defined]
+    assert exc.value.code == 2
+    assert f"error: --tracking-uri={missing!r}: no such file" in capsys.readouterr().err
+    for uri, experiment in ((store_uri, "no-such-experiment"),):
         with pytest.raises(SystemExit) as exc:
             script.main(
                 [

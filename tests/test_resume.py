@@ -141,6 +141,7 @@ def test_sigterm_to_training_process_then_cli_resume(tmp_path: Path, store: str)
     resumes it from the store, and the returns equal an uninterrupted run's."""
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     args = [*CONTROLLED, "train.episodes=400", "train.checkpoint_every=25", f"tracking.uri={uri}"]
+    args.append("hydra.verbose=cdqn")  # checkpoints are logged at DEBUG
     proc, seen = start_cli("cdqn.train", args, tmp_path), []
     try:
         read_until(proc, "checkpoint at episode 25", seen)  # the first periodic checkpoint
@@ -174,7 +175,7 @@ def test_sigterm_to_population_process_then_resume_equals_uninterrupted(tmp_path
     closed KILLED with the resume command; ``resume=<one member>`` continues all of them, and
     every member's returns and signal rows equal those of an uninterrupted population."""
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
-    args = [*POPULATION, "train.checkpoint_every=20", f"tracking.uri={uri}"]
+    args = [*POPULATION, "train.checkpoint_every=20", f"tracking.uri={uri}", "hydra.verbose=cdqn"]
     proc, seen = start_cli("cdqn.train", args, tmp_path), []
     try:
         read_until(proc, "checkpoint at episode", seen)  # the first population checkpoint

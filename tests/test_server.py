@@ -200,6 +200,7 @@ def test_a_server_that_goes_away_and_comes_back(tmp_path: Path) -> None:
         uri = server.uri
         # 1. a 5 s outage within tracking.retry_s=120: the run finishes, nothing lost
         args = [*OUTAGE, f"tracking.uri={uri}", "tracking.retry_s=120"]
+        args.append("hydra.verbose=cdqn")  # checkpoints are logged at DEBUG
         proc, seen = start_cli("cdqn.train", args, tmp_path), []
         try:
             read_until(proc, "checkpoint at episode 50", seen)
@@ -224,6 +225,7 @@ def test_a_server_that_goes_away_and_comes_back(tmp_path: Path) -> None:
             "tracking.retry_s=3",
             f"tracking.local_checkpoints={local}",
         ]
+        args.append("hydra.verbose=cdqn")  # checkpoints are logged at DEBUG
         proc, seen = start_cli("cdqn.train", args, tmp_path), []
         try:
             read_until(proc, "checkpoint at episode 50", seen)
@@ -280,6 +282,7 @@ def test_a_population_whose_server_stays_away(tmp_path: Path) -> None:
             "tracking.retry_s=3",
             f"tracking.local_checkpoints={local}",
         ]
+        args.append("hydra.verbose=cdqn")  # checkpoints are logged at DEBUG
         proc, seen = start_cli("cdqn.train", args, tmp_path), []
         try:
             read_until(proc, "checkpoint at episode", seen)  # the population's first

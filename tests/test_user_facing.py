@@ -66,7 +66,8 @@ def store(tmp_path_factory: pytest.TempPathFactory) -> tuple[Store, str, str]:
 def test_env_id_run_is_named_tagged_and_capped_as_that_environment(store) -> None:
     st, _, _ = store
     runs = st.runs()
-    assert [r.info.run_name for r in runs] == [f"{ENV_ID}-none-s{s}" for s in (0, 1, 1, 2)]
+    names = [f"{ENV_ID}-none-w64-e{e}-s{s}" for e, s in ((4, 0), (3, 1), (3, 1), (3, 2))]
+    assert [r.info.run_name for r in runs] == names  # the width and episodes differ
     first = runs[0]
     assert first.data.tags["env"] == ENV_ID and first.data.tags["env_id"] == ENV_ID
     params = first.data.params

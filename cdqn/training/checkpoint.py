@@ -144,7 +144,7 @@ class CheckpointStore:
             self._log(path, f"{ROOT}/slot-{slot}")
         self._next_slot = 1 - self._next_slot
         if announce:
-            log.info("checkpoint at episode %d (slot %s)", ckpt.episode, slot)
+            log.debug("checkpoint at episode %d (slot %s)", ckpt.episode, slot)
 
     def _log(self, path: Path, artifact_path: str) -> None:
         """One artifact, retried while the store does not answer (``retry_s``)."""

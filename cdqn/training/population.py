@@ -80,11 +80,13 @@ from cdqn.training.sweep import (
     find_finished,
     find_resumable,
     process_tags,
+    run_name,
 )
 from cdqn.training.tracking import (
     Recorder,
     TrackingOutage,
     check_tracking,
+    closes_for_good,
     fail_fast_http,
     flatten,
     git_commit,
@@ -145,6 +147,11 @@ def start_population(
             m.recorder = start_member_run(
                 m, conf, setup, uri, f"{seeds[0]}-{seeds[-1]}", population_id
             )
+        log.info(
+            "MLflow runs %s (%s, %s, seeds %d-%d)",
+            ", ".join(m.recorder.run_id for m in members if m.recorder is not None),
+            conf.env.name, conf.controller.name, members[0].seed, members[-1].seed,
+        )  # fmt: skip
     except BaseException:
         for env in venv.envs:
             env.close()
@@ -241,7 +248,7 @@ def train_members(
                 last = max(c.episode for _, c in items)
                 span = f"episode {first}" if first == last else f"episodes {first}-{last}"
                 what = f"{len(items)} members" if len(items) > 1 else f"seed {items[0][0].seed}"
-                log.info("checkpoint at %s (%s)", span, what)
+                log.debug("checkpoint at %s (%s)", span, what)
             except TrackingOutage as err:
                 went_away(err)
         if outage:  # every member of this checkpoint into its local file, one sequence
@@ -260,6 +267,7 @@ def train_members(
 
     stop = GracefulStop()
     t0 = time.perf_counter()
+    before = {m.seed: m.signals.n for m in members}  # steps of resumed members
 
     def killed_reason(m: Member, during: str) -> str:
         assert m.recorder is not None
@@ -283,7 +291,7 @@ def train_members(
             )
         if not outage:
             try:
-                finish_member(m, net, conf)
+                finish_member(m, net, conf, box=box)
             except TrackingOutage as err:
                 went_away(err)
         status = m.status
@@ -294,7 +302,8 @@ def train_members(
         seconds = time.perf_counter() - t0
         results[m.seed] = RunResult(
             m.recorder.run_id, status, m.score, m.reason, returns=list(m.returns),
-            steps=m.signals.n, seconds=seconds, rate=m.signals.n / seconds,
+            steps=m.signals.n, seconds=seconds, rate=(m.signals.n - before[m.seed]) / seconds,
+            steps_before=before[m.seed],
             epsilon=float(pop.epsilon[j]), solve_threshold=conf.env.solve_threshold,
         )  # fmt: skip
 
@@ -579,7 +588,7 @@ def start_member_run(
     rec = Recorder.start(
         uri,
         conf.tracking.experiment,
-        f"{conf.env.name}-{conf.controller.name}-s{m.seed}",
+        run_name(conf, m.seed),
         flatten(container),  # type: ignore[arg-type]
         tags,
         config=container,  # type: ignore[arg-type]
@@ -588,21 +597,29 @@ def start_member_run(
         rec.log_dict(setup.design, "design/controller.json")
     if setup.artifacts is not None:
         rec.log_dir(setup.artifacts, "design")
-    log.info(
+    log.debug(
         "MLflow run %s (%s, %s, seed %d)", rec.run_id, conf.env.name, conf.controller.name, m.seed
     )
     return rec
 
 
-def finish_member(m: Member, net: QNetwork | None, conf: Config, model: Path | None = None) -> None:
+def finish_member(
+    m: Member,
+    net: QNetwork | None,
+    conf: Config,
+    model: Path | None = None,
+    box: Box | None = None,
+) -> None:
     """Signals, model (of ``net``, or the saved one in folder ``model``) and status of
-    member ``m``'s run, as a single run writes them.  A store that went away
-    (:class:`TrackingOutage`) leaves the run open."""
+    member ``m``'s run, as a single run writes them (``box``: the design's NTK box, drawn
+    with the signal series).  A store that went away (:class:`TrackingOutage`) leaves the
+    run open."""
     rec = m.recorder
     assert rec is not None
     try:
         if conf.train.signals:
-            rec.log_signals(m.signals, conf.train.lr)
+            final = closes_for_good(m.status, m.reason)
+            rec.log_signals(m.signals, conf.train.lr, box, final)
         if conf.tracking.log_model and net is not None:
             with tempfile.TemporaryDirectory() as tmp:
                 save_network(net, Path(tmp))

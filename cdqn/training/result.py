@@ -38,7 +38,10 @@ class RunResult:
     seconds: float = math.nan
     """Wall time of this process's training (a resumed run: since it was resumed)."""
     rate: float = math.nan
-    """Environment steps per second of wall time, bookkeeping and logging included."""
+    """Environment steps per second of wall time, bookkeeping and logging included, of this
+    process's training: ``(steps - steps_before) / seconds``."""
+    steps_before: int = 0
+    """Environment steps the run had when this process resumed it (0: not resumed)."""
     epsilon: float = math.nan
     """Exploration ε at the end."""
     solve_threshold: float | None = None
@@ -106,9 +109,16 @@ def result_lines(result: RunResult) -> list[str]:
     lines = [f"run {result.run_id} {result.status}: {score}; {solved}"]
     if math.isfinite(result.seconds):
         rate = f" ({result.rate:.0f} steps/s)" if math.isfinite(result.rate) else ""
-        lines.append(
-            f"  {result.steps} environment steps, {result.seconds:.1f} s of training{rate}"
-        )
+        if result.steps_before:  # the time covers the resumed part alone, and so does the rate
+            lines.append(
+                f"  {result.steps} environment steps; resumed at step {result.steps_before}: "
+                f"{result.steps - result.steps_before} steps in {result.seconds:.1f} s of "
+                f"training{rate}"
+            )
+        else:
+            lines.append(
+                f"  {result.steps} environment steps, {result.seconds:.1f} s of training{rate}"
+            )
     if result.epsilon > MOSTLY_RANDOM:
         lines.append(
             f"  warning: ε = {result.epsilon:.2f} at the end (above {MOSTLY_RANDOM}): mostly "

@@ -43,10 +43,11 @@ from cdqn.training.loop import DivergenceError, EpisodeStats, TrainState, train
 from cdqn.training.population_checkpoint import stored_config
 from cdqn.training.result import OUTAGE, RunResult
 from cdqn.training.signals import SignalBuffer
-from cdqn.training.sweep import config_hash, process_tags
+from cdqn.training.sweep import config_hash, process_tags, run_name
 from cdqn.training.tracking import (
     Recorder,
     TrackingOutage,
+    closes_for_good,
     fail_fast_http,
     flatten,
     git_commit,
@@ -81,7 +82,7 @@ def start_run(cfg: DictConfig, conf: Config, env: gym.Env, uri: str, progress: b
         recorder = Recorder.start(
             uri,
             conf.tracking.experiment,
-            f"{conf.env.name}-{conf.controller.name}-s{conf.seed}",
+            run_name(conf),
             params,
             tags,
             config=container,  # type: ignore[arg-type]
@@ -267,6 +268,7 @@ def _train(
         steps=state.total_steps,
         seconds=seconds,
         rate=(state.total_steps - start_steps) / seconds if seconds > 0 else math.nan,
+        steps_before=start_steps,
         epsilon=float(job.agent.epsilon),
         solve_threshold=conf.env.solve_threshold,
     )
@@ -286,7 +288,9 @@ def _close_run(
     try:
         try:
             if conf.train.signals:
-                recorder.log_signals(signals, conf.train.lr)
+                recorder.log_signals(
+                    signals, conf.train.lr, job.setup.box(), closes_for_good(status, reason)
+                )
             if conf.tracking.log_model:
                 with tempfile.TemporaryDirectory() as tmp:
                     save_network(job.net, Path(tmp))

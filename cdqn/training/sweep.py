@@ -31,7 +31,14 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from cdqn.config import EXPERIMENT_TAGS, resolve_tracking_uri
+from cdqn.config import (
+    EXPERIMENT_TAGS,
+    Config,
+    ConfigError,
+    NetworkConfig,
+    TrainConfig,
+    resolve_tracking_uri,
+)
 
 try:
     import fcntl
@@ -171,7 +178,8 @@ def ensure_store(uri: str, experiment: str, attempts: int = 5) -> None:
 
     For a SQLite store this happens under an exclusive lock on ``<database>.lock``: a fresh
     store's first migration, run by several processes at once, fails and leaves the
-    database unusable (a half-finished ``_alembic_tmp_*`` table).  Other errors are retried.
+    database unusable (a half-finished ``_alembic_tmp_*`` table).  Other errors are retried,
+    then raised as :class:`cdqn.config.ConfigError` (exit status 2, one line).
     """
     for attempt in range(attempts):
         try:
@@ -182,7 +190,10 @@ def ensure_store(uri: str, experiment: str, attempts: int = 5) -> None:
             return
         except Exception as err:
             if attempt == attempts - 1:
-                raise
+                raise ConfigError(
+                    f"tracking.uri={uri!r}: the store cannot be opened "
+                    f"({type(err).__name__}: {' '.join(str(err).split())[:300]})"
+                ) from None
             delay = 0.2 * 2**attempt * (1 + random.random())
             log.warning("tracking store %s not ready (%s); retrying in %.1f s", uri, err, delay)
             time.sleep(delay)
@@ -242,3 +253,30 @@ def resumable_elsewhere(cfg: DictConfig, uri: str) -> str | None:
     """The run id a restarted sweep continues for ``cfg`` (:func:`find_resumable`), or None."""
     run = find_resumable(MlflowClient(uri), str(cfg.tracking.experiment), config_hash(cfg))
     return run.info.run_id if run is not None else None
+
+
+NAME_PARTS = (
+    ("network.width", "w"),
+    ("train.episodes", "e"),
+    ("train.lr", "lr"),
+    ("train.discount", "g"),
+)
+"""Settings a run name shows, each with its letter, when they differ from the defaults of
+:class:`cdqn.config.Config` (the paper's: width 2500, 2000 episodes, α = 5e-5, γ = 1)."""
+
+
+def run_name(conf: Config, seed: int | None = None) -> str:
+    """``<env.name>-<controller>[-w<width>][-e<episodes>][-lr<α>][-g<γ>]-s<seed>``: what
+    tells a run apart from others in the MLflow runs table, e.g. ``cartpole-hinf-s0`` with
+    the paper's settings, ``cartpole-hinf-w64-e50-s0`` for a quick look.  Every other
+    setting is in the run's params and tags (``config_hash`` identifies the whole
+    configuration)."""
+    parts = [conf.env.name, conf.controller.name]
+    defaults = {"network": NetworkConfig(), "train": TrainConfig()}
+    for key, letter in NAME_PARTS:
+        group, field = key.split(".")
+        value = getattr(getattr(conf, group), field)
+        if value != getattr(defaults[group], field):
+            parts.append(f"{letter}{value:g}")
+    parts.append(f"s{conf.seed if seed is None else seed}")
+    return "-".join(parts)

@@ -29,8 +29,9 @@ from mlflow.store.artifact.artifact_repository_registry import get_artifact_repo
 from mlflow.tracking import MlflowClient
 
 from cdqn.config import EXPERIMENT_TAGS, ConfigError
+from cdqn.control.box import Box
 from cdqn.training.loop import EpisodeStats
-from cdqn.training.signals import SignalBuffer, amplitude_spectra
+from cdqn.training.signals import SeriesPoint, SignalBuffer, amplitude_spectra, signal_series
 
 log = logging.getLogger("cdqn")
 T = TypeVar("T")
@@ -124,16 +125,33 @@ def check_tracking(uri: str, timeout: float = 10.0) -> None:
         path = Path(uri[len("sqlite:///") :])
         if str(path) not in ("", ":memory:"):
             _check_folder(path.parent, uri)
+            _check_database(path, uri)
     elif scheme in ("", "file"):
         _check_folder(Path(urlsplit(uri).path if scheme == "file" else uri), uri)
 
 
-def _check_server(uri: str, timeout: float) -> None:
+def check_readable(uri: str, timeout: float = 10.0, name: str = "--tracking-uri") -> None:
+    """Fail fast when ``uri`` is no store to read runs from: a server that does not answer
+    as MLflow, a ``sqlite:///`` file that does not exist or is not an SQLite database
+    (:class:`TrackingError` naming the option ``name``)."""
+    scheme = urlsplit(uri).scheme
+    if scheme in ("http", "https"):
+        _check_server(uri, timeout, name)
+    elif scheme == "sqlite":
+        path = Path(uri[len("sqlite:///") :])
+        if str(path) in ("", ":memory:"):
+            return
+        if not path.exists():
+            raise TrackingError(f"{name}={uri!r}: no such file {path}")
+        _check_database(path, uri, write=False, name=name)
+
+
+def _check_server(uri: str, timeout: float, name: str = "tracking.uri") -> None:
     base = uri.rstrip("/")
     hint = (
         "start one with `mlflow server --backend-store-uri sqlite:///mlflow.db --serve-artifacts "
         f"--host {urlsplit(uri).hostname} --port {urlsplit(uri).port or 5000}`, or choose another "
-        "tracking.uri (tracking=local for an embedded store)"
+        f"{name}" + (" (tracking=local for an embedded store)" if name == "tracking.uri" else "")
     )
     t0 = time.monotonic()
     try:
@@ -141,18 +159,18 @@ def _check_server(uri: str, timeout: float) -> None:
             body = resp.read(100).decode("utf-8", "replace").strip()
     except urllib.error.HTTPError as err:
         raise TrackingError(
-            f"tracking.uri={uri!r}: not an MLflow tracking server (GET /health answered "
+            f"{name}={uri!r}: not an MLflow tracking server (GET /health answered "
             f"HTTP {err.code}); {hint}"
         ) from None
     except (urllib.error.URLError, OSError) as err:
         reason = getattr(err, "reason", err)
         raise TrackingError(
-            f"tracking.uri={uri!r}: no MLflow tracking server reachable ({reason}, after "
+            f"{name}={uri!r}: no MLflow tracking server reachable ({reason}, after "
             f"{time.monotonic() - t0:.1f} s, tracking.timeout={timeout:g}); {hint}"
         ) from None
     if body != "OK":
         raise TrackingError(
-            f"tracking.uri={uri!r}: not an MLflow tracking server (GET /health answered "
+            f"{name}={uri!r}: not an MLflow tracking server (GET /health answered "
             f"{body[:40]!r}, expected 'OK'); {hint}"
         )
     api = f"{base}/api/2.0/mlflow/experiments/search?max_results=1"
@@ -161,18 +179,50 @@ def _check_server(uri: str, timeout: float) -> None:
             json.loads(resp.read())
     except (urllib.error.URLError, OSError, ValueError) as err:
         raise TrackingError(
-            f"tracking.uri={uri!r}: the server answers /health but not the MLflow REST API "
+            f"{name}={uri!r}: the server answers /health but not the MLflow REST API "
             f"({err}); is it an MLflow tracking server (not --artifacts-only)?"
         ) from None
 
 
 def _check_folder(folder: Path, uri: str) -> None:
+    """The folder exists (or is created) and takes a new file: tried, as permissions alone
+    do not tell (a read-only file system, ``/sys``, refuses root too)."""
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        raise TrackingError(f"tracking.uri={uri!r}: cannot create {folder} ({err})") from None
-    if not os.access(folder, os.W_OK):
-        raise TrackingError(f"tracking.uri={uri!r}: folder {folder} is not writable")
+        raise TrackingError(
+            f"tracking.uri={uri!r}: cannot create the folder {folder} ({err.strerror or err}); "
+            "choose a folder you can write to"
+        ) from None
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as err:
+        raise TrackingError(
+            f"tracking.uri={uri!r}: cannot write to the folder {folder} ({err.strerror or err}); "
+            "choose a folder you can write to"
+        ) from None
+
+
+SQLITE_HEADER = b"SQLite format 3\x00"
+"""The first 16 bytes of every SQLite database file."""
+
+
+def _check_database(path: Path, uri: str, write: bool = True, name: str = "tracking.uri") -> None:
+    """An existing ``path`` must be a SQLite database (an empty file is one), writable if
+    ``write``."""
+    if not path.exists():
+        return
+    hint = "choose another file (a new one is created) or move this one away"
+    if not path.is_file():
+        raise TrackingError(f"{name}={uri!r}: {path} is not a file; {hint}")
+    try:
+        with path.open("r+b" if write else "rb") as handle:
+            head = handle.read(len(SQLITE_HEADER))
+    except OSError as err:
+        raise TrackingError(f"{name}={uri!r}: cannot open {path} ({err.strerror or err})") from None
+    if head and head != SQLITE_HEADER:
+        raise TrackingError(f"{name}={uri!r}: {path} is not an SQLite database; {hint}")
 
 
 def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -207,6 +257,12 @@ def git_commit() -> str:
     except (OSError, subprocess.SubprocessError):
         return "unknown"
     return sha + ("+dirty" if dirty else "")
+
+
+def closes_for_good(status: str, reason: str | None) -> bool:
+    """Whether a run closed with ``status`` and ``reason`` is never continued (FINISHED, or
+    FAILED by divergence), so that its signal series are logged once, for the whole run."""
+    return status == "FINISHED" or (status == "FAILED" and (reason or "").startswith("diverged"))
 
 
 class Recorder:
@@ -328,16 +384,28 @@ class Recorder:
             f"artifacts {artifact_path}/",
         )
 
-    def log_signals(self, signals: SignalBuffer, dt: float) -> None:
+    def log_signals(
+        self, signals: SignalBuffer, dt: float, box: Box | None = None, series: bool = True
+    ) -> None:
         """``signals/steps.parquet`` and ``signals/fft.parquet`` (columns in
-        :mod:`cdqn.training.signals`)."""
+        :mod:`cdqn.training.signals`); with ``series``, also the downsampled signals and
+        spectra as metric series (:func:`cdqn.training.signals.signal_series`, ``box`` the
+        design's NTK box) in one batch, which MLflow draws on the run's page."""
         steps = signals.to_frame()
+        spectra = amplitude_spectra(steps, dt)
         with tempfile.TemporaryDirectory() as tmp:
             steps.to_parquet(Path(tmp) / "steps.parquet", compression="zstd", index=False)
-            amplitude_spectra(steps, dt).to_parquet(
-                Path(tmp) / "fft.parquet", compression="zstd", index=False
-            )
+            spectra.to_parquet(Path(tmp) / "fft.parquet", compression="zstd", index=False)
             self._retry(lambda: self.client.log_artifacts(self.run_id, tmp, "signals"), "signals/")
+        if series:
+            self.log_series(signal_series(signals.rows(0), spectra, box))
+
+    def log_series(self, points: list[SeriesPoint]) -> None:
+        """Write ``points`` (at most 1000, one ``log_batch``) as metrics of the run."""
+        ts = int(time.time() * 1000)
+        batch = [Metric(p.key, p.value, ts, p.step) for p in points]
+        if batch:
+            self._retry(lambda: self.client.log_batch(self.run_id, metrics=batch), "series")
 
     def delete_artifacts(self, artifact_path: str) -> None:
         """Remove the run's artifacts under ``artifact_path`` (e.g. its resume checkpoints);

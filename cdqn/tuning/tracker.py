@@ -20,7 +20,9 @@ class Tracker:
         from mlflow.tracking import MlflowClient  # noqa: PLC0415
 
         from cdqn.training.sweep import ensure_store  # noqa: PLC0415
+        from cdqn.training.tracking import check_tracking  # noqa: PLC0415
 
+        check_tracking(uri)  # an unusable store: one line, exit status 2
         ensure_store(uri, experiment)
         self.client = MlflowClient(uri)
         exp = self.client.get_experiment_by_name(experiment)

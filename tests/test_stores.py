@@ -1,0 +1,93 @@
+"""Every store cdqn cannot use is refused with one line and exit status 2, no traceback:
+an unwritable folder, a folder that cannot be created, a file that is not SQLite, a folder
+where the database file should be, a server that is down (a closed port).  The real
+``python -m cdqn.train`` and ``analysis/make_table.py`` in subprocesses."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import TINY
+from tests.helpers import free_port, run_cli
+
+pytestmark = pytest.mark.slow  # one CLI start (torch, MLflow imports) per case
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _unwritable(tmp: Path) -> tuple[str, str]:
+    if os.geteuid() == 0:  # root writes anywhere permissions allow: use a read-only fs
+        return "sqlite:////sys/mlflow.db", "cannot write to the folder /sys"
+    folder = tmp / "readonly"
+    folder.mkdir()
+    folder.chmod(0o555)
+    return f"sqlite:///{folder}/mlflow.db", f"cannot write to the folder {folder}"
+
+
+def _uncreatable(tmp: Path) -> tuple[str, str]:
+    (tmp / "afile").write_text("")
+    return f"sqlite:///{tmp}/afile/sub/mlflow.db", f"cannot create the folder {tmp}/afile/sub"
+
+
+def _not_sqlite(tmp: Path) -> tuple[str, str]:
+    (tmp / "notes.db").write_text("these are notes, not a database\n")
+    return f"sqlite:///{tmp}/notes.db", f"{tmp}/notes.db is not an SQLite database"
+
+
+def _folder_as_file(tmp: Path) -> tuple[str, str]:
+    (tmp / "store.db").mkdir()
+    return f"sqlite:///{tmp}/store.db", f"{tmp}/store.db is not a file"
+
+
+def _server_down(tmp: Path) -> tuple[str, str]:
+    uri = f"http://127.0.0.1:{free_port()}"
+    return uri, "no MLflow tracking server reachable"
+
+
+CASES: dict[str, Callable[[Path], tuple[str, str]]] = {
+    "unwritable folder": _unwritable,
+    "folder cannot be created": _uncreatable,
+    "not an SQLite file": _not_sqlite,
+    "a folder, not a file": _folder_as_file,
+    "server down": _server_down,
+}
+
+
+def _one_line_exit_2(proc: subprocess.CompletedProcess[str], *expected: str) -> None:
+    """Exit status 2 and one error line holding every ``expected`` text, nothing retried."""
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 2, out[-3000:]
+    assert "Traceback" not in out and "retrying" not in out, out[-3000:]
+    errors = [ln for ln in out.splitlines() if "error" in ln.lower()]
+    assert len(errors) == 1, out[-3000:]
+    assert all(text in errors[0] for text in expected), errors[0]
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_train_refuses_an_unusable_store(case: str, tmp_path: Path) -> None:
+    uri, expected = CASES[case](tmp_path)
+    server = ["tracking=server"] if uri.startswith("http") else []
+    proc = run_cli("cdqn.train", [*TINY, *server, f"tracking.uri={uri}"], tmp_path, timeout=120)
+    _one_line_exit_2(proc, f"tracking.uri='{uri}'", expected)
+
+
+@pytest.mark.parametrize("case", ["not an SQLite file", "server down", "no such file"])
+def test_analysis_refuses_an_unusable_store(case: str, tmp_path: Path) -> None:
+    if case == "no such file":
+        uri, expected = f"sqlite:///{tmp_path}/none.db", f"no such file {tmp_path}/none.db"
+    else:
+        uri, expected = CASES[case](tmp_path)
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "analysis/make_table.py"), "--tracking-uri", uri],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    _one_line_exit_2(proc, f"--tracking-uri='{uri}'", expected)
