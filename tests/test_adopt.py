@@ -269,7 +269,7 @@ def _assert_adopted(run, controller: str) -> None:  # noqa: ANN001
 
 @pytest.mark.slow
 def test_single_run_is_the_environments_with_its_kwargs(store: Store) -> None:
-    run_ = store.run(f"{LABEL}-hinf_f-s0")
+    run_ = store.run(f"{LABEL}-hinf_f-w64-e3-s0")
     _assert_adopted(run_, "hinf_f")
     assert run_.data.params["env.kwargs.step_reward"] == "-2.0"
     design = json.loads(store.artifact(run_.info.run_id, "design/controller.json").read_text())
@@ -283,7 +283,9 @@ def test_single_run_is_the_environments_with_its_kwargs(store: Store) -> None:
 def test_multirun_and_population_runs_are_the_environments(store: Store) -> None:
     runs = runs_of(store.uri)
     names = sorted(r.info.run_name for r in runs)
-    assert names == sorted([f"{LABEL}-hinf_f-s0", *[f"{LABEL}-none-s{s}" for s in (10, 10, 11)]])
+    assert names == sorted(
+        [f"{LABEL}-hinf_f-w64-e3-s0", *[f"{LABEL}-none-w64-e3-s{s}" for s in (10, 10, 11)]]
+    )
     members = [r for r in runs if "population" in r.data.tags]
     assert sorted(r.data.tags["seed"] for r in members) == ["10", "11"]
     for r in runs:
@@ -294,7 +296,7 @@ def test_multirun_and_population_runs_are_the_environments(store: Store) -> None
 
 @pytest.mark.slow
 def test_evaluate_builds_the_stored_environment(store: Store) -> None:
-    run_id = store.run(f"{LABEL}-hinf_f-s0").info.run_id
+    run_id = store.run(f"{LABEL}-hinf_f-w64-e3-s0").info.run_id
     args = [f"run_id={run_id}", "episodes=3", f"tracking.uri={store.uri}"]
     proc = run_cli("cdqn.evaluate", args, store.folder)
     assert proc.returncode == 0, proc.stderr
@@ -342,7 +344,7 @@ def test_resume_continues_the_environments_run(
     proc = run_cli("cdqn.train", [f"resume={stopped.run_id}", f"tracking.uri={uri}"], tmp_path)
     assert proc.returncode == 0, proc.stderr
     resumed = MlflowClient(uri).get_run(stopped.run_id)
-    assert resumed.info.status == "FINISHED" and resumed.info.run_name == f"{LABEL}-none-s0"
+    assert resumed.info.status == "FINISHED" and resumed.info.run_name == f"{LABEL}-none-w64-e3-s0"
     _assert_adopted(resumed, "none")
     assert len(episode_returns(MlflowClient(uri), stopped.run_id)) == 3
 
@@ -370,8 +372,9 @@ def test_tune_studies_the_environment_as_itself(tmp_path: Path) -> None:
     parent = next(r for r in runs if r.data.tags.get("kind") == "tune")
     assert parent.info.run_name == f"tune-{LABEL}-hinf_f" and parent.data.tags["env"] == LABEL
     members = [r for r in runs if "population" in r.data.tags]
-    assert sorted(r.info.run_name for r in members) == [f"{LABEL}-hinf_f-s100",
-                                                        f"{LABEL}-hinf_f-s101"]  # fmt: skip
+    names = sorted(r.info.run_name for r in members)
+    assert [n.rsplit("-", 1)[1] for n in names] == ["s100", "s101"]
+    assert all(n.startswith(f"{LABEL}-hinf_f-w64-e4") for n in names)
     for r in members:
         assert (r.data.tags["env"], r.data.tags["env_id"]) == (LABEL, TOY)
         assert r.data.params["env.max_episode_steps"] == "50"

@@ -513,7 +513,7 @@ def test_both_agents_tuned_alike_compared_and_their_presets_reproduce_the_settin
         assert shared <= set(summary["best_params"])
         assert summary["evaluation"]["seeds"] == [1000, 1001]
     assert ddqn["comparison"]["rows"] == ["ddqn", "hinf_f"]
-    assert "| hinf_f | cartpole-hinf_f |" in ddqn["comparison"]["table"]
+    assert "| hinf_f | CartPole-v1-cap60-hinf_f |" in ddqn["comparison"]["table"]
     client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
     arts = {a.path for a in client.list_artifacts(ddqn["parent_run"], "comparison")}
     assert arts == {"comparison/comparison.md", "comparison/comparison.png"}

@@ -15,6 +15,11 @@ threshold.  When ``env.id`` is not the id of the preset named ``env.name``
   (``max_episode_steps``, ``reward_threshold``) unless they were set to something other than
   the preset's values.
 
+A preset's own id with another episode cap (``env=cartpole env.max_episode_steps=500``) is
+another task: it is labelled by the id (``CartPole-v1``, or ``CartPole-v1-cap300`` for a cap
+its registration does not have) and, at the registration's cap, takes its threshold unless one
+was set.
+
 For a run of an id no preset names (an adopted one, or one named by the user),
 ``controller.synthesis.ntk_bounds`` becomes ``measured`` when the selected ``weights``
 preset belongs to an environment preset of another id: a robust design is never built on
@@ -73,6 +78,8 @@ def adopt(cfg: DictConfig) -> Adopted:
     with read_write(out):
         if preset is not None and preset.id != env.id:
             changed += _take_registration(env, preset, spec)
+        elif preset is not None and env.max_episode_steps != preset.max_episode_steps:
+            changed += _other_cap(env, preset, spec)
         if preset is None or preset.id != env.id:
             changed += _box_of_its_own(out)
     if env.max_episode_steps is None and spec.max_episode_steps is None:
@@ -82,7 +89,10 @@ def adopt(cfg: DictConfig) -> Adopted:
         )
     conf: Config = OmegaConf.to_object(out)  # type: ignore[assignment]
     validate(conf)
-    head = f"env.id={env.id} is not env={preset.name}'s {preset.id}: " if preset else ""
+    head = ""
+    if preset is not None:
+        head = (f"env.id={env.id} is not env={preset.name}'s {preset.id}: " if preset.id != env.id
+                else f"env={preset.name} at another episode cap: ")  # fmt: skip
     return Adopted(out, conf, head + ", ".join(changed) if changed else None)
 
 
@@ -99,6 +109,20 @@ def _take_registration(env: DictConfig, preset: EnvConfig, spec: EnvSpec) -> lis
     if env.solve_threshold == preset.solve_threshold:
         env.solve_threshold = threshold
         changed.append(f"solve threshold {threshold} (its registration)")
+    return changed
+
+
+def _other_cap(env: DictConfig, preset: EnvConfig, spec: EnvSpec) -> list[str]:
+    """A preset's id with another episode cap is another task (CartPole-v1 at 500 steps is
+    not the 200-step ``cartpole``): labelled by the id, with ``-cap<N>`` unless the cap is the
+    registration's, whose solve threshold it then takes unless one was set."""
+    cap = env.max_episode_steps
+    label = env_label(str(env.id)) + ("" if cap == spec.max_episode_steps else f"-cap{cap}")
+    env.name = label
+    changed = [f"named {label} (episode cap {cap}, not {preset.name}'s {preset.max_episode_steps})"]
+    if env.solve_threshold == preset.solve_threshold and cap == spec.max_episode_steps:
+        env.solve_threshold = spec.reward_threshold
+        changed.append(f"solve threshold {spec.reward_threshold} (its registration)")
     return changed
 
 
