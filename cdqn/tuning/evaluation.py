@@ -10,15 +10,20 @@ and J, the area under the learning curve (:mod:`cdqn.tuning.objective`)."""
 
 from __future__ import annotations
 
+import copy
+import itertools
 import json
 import logging
+import multiprocessing
+import os
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from omegaconf import DictConfig
+from omegaconf import DictConfig, read_write
 
 from cdqn.tuning.objective import area, ma100, padded
 
@@ -28,34 +33,64 @@ RETURNS = "evaluation/returns.json"
 
 
 def evaluate(study: Any, cfg: DictConfig, name: str) -> dict[str, Any]:
-    """Train ``cfg`` on the fresh seeds; its objective, final score and per-seed returns."""
-    from cdqn.tuning.trial import train_population  # noqa: PLC0415
-
+    """Train ``cfg`` on the fresh seeds; its objective, final score and per-seed returns.
+    The seeds are split into ``tune.eval_processes`` populations trained side by side (one
+    per core by default); each member's returns are read back from the store."""
     conf, tracker = study.conf, study.tracker
     agent = str(cfg.controller.name)
     tags = {"study": conf.tune.study, "agent": agent, "env": conf.env.name,
             "episodes": str(study.episodes), "seeds": _seeds_tag(cfg)}  # fmt: skip
     run = tracker.child(study.parent, name, tags, kind="evaluation")
     t0 = time.perf_counter()
-    prog, result, _ = train_population(study, cfg)
-    ids = [r.run_id for r in result.members]
+    members = _train_split(cfg, _processes(conf.tune.eval_processes, int(cfg.train.population)))
+    ids = [r.run_id for r in members]
     tracker.nest(run, ids)
-    seeds = list(prog.returns)
-    if not any(prog.returns.values()):  # trained one after another: read the store
-        prog.returns = {s: tracker.returns(rid) for s, rid in zip(seeds, ids, strict=True)}
-        prog.failed = {s for s, r in zip(seeds, result.members, strict=True)
-                       if r.status == "FAILED"}  # fmt: skip
+    seeds = [int(cfg.seed) + i for i in range(len(members))]
+    failed = {s for s, r in zip(seeds, members, strict=True) if r.status == "FAILED"}
     n = study.episodes
-    curves = {s: padded(r, n, s in prog.failed) or r for s, r in prog.returns.items()}
+    curves = {s: padded(tracker.returns(rid), n, s in failed) or tracker.returns(rid)
+              for s, rid in zip(seeds, ids, strict=True)}  # fmt: skip
     row = summarise(agent, curves, n, conf.env.solve_threshold)
-    out = {**row, "seeds": seeds, "diverged": len(prog.failed),
-           "seconds": time.perf_counter() - t0}  # fmt: skip
+    out = {**row, "seeds": seeds, "diverged": len(failed), "seconds": time.perf_counter() - t0}
     tracker.client.log_dict(run, {str(s): list(map(float, c)) for s, c in curves.items()}, RETURNS)
     tracker.metrics(run, {"objective": row["objective"], "final_score": row["final_score"]})
     tracker.end(run, "FINISHED", "complete")
-    log.info("%s on seeds %s: J = %.2f, final MA100 = %.1f ± %.1f", name, seeds,
-             row["objective"], row["final_score"], row["final_std"])  # fmt: skip
+    log.info("%s on seeds %s: J = %.2f, final MA100 = %.1f ± %.1f (%.0f s)", name, seeds,
+             row["objective"], row["final_score"], row["final_std"], out["seconds"])  # fmt: skip
     return out
+
+
+def _processes(setting: int, seeds: int) -> int:
+    """Processes of the evaluation: ``tune.eval_processes``, 0 for one per core."""
+    return max(1, min(seeds, setting or os.cpu_count() or 1))
+
+
+def _train_split(cfg: DictConfig, processes: int) -> list[Any]:
+    """The population of ``cfg`` as ``processes`` populations of consecutive seeds, trained
+    in parallel processes; the members' results in seed order."""
+    from cdqn.training.run import run_population  # noqa: PLC0415
+
+    k = int(cfg.train.population)
+    if processes == 1:
+        return run_population(cfg, progress=False).members
+    bounds = np.linspace(0, k, processes + 1).astype(int)
+    parts = []
+    for lo, hi in itertools.pairwise(bounds):
+        part = copy.deepcopy(cfg)
+        with read_write(part):
+            part.seed = int(cfg.seed) + int(lo)
+            part.train.population = int(hi - lo)
+        parts.append(part)
+    spawn = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(processes, mp_context=spawn) as pool:
+        results = list(pool.map(_train_part, parts))
+    return [m for r in results for m in r]
+
+
+def _train_part(cfg: DictConfig) -> list[Any]:
+    from cdqn.training.run import run_population  # noqa: PLC0415
+
+    return run_population(cfg, progress=False).members
 
 
 def _seeds_tag(cfg: DictConfig) -> str:

@@ -79,6 +79,9 @@ class TuneSettings:
     """Fresh seeds of the final evaluation of the best specification (0: none)."""
     eval_seed: int = 1000
     """First seed of the evaluation; its seeds must not overlap the trials' seeds."""
+    eval_processes: int = 0
+    """Processes the evaluation's seeds are split over, trained side by side (0: one per
+    core)."""
     baseline: str | None = None
     """A controller (e.g. ddqn) trained, untuned, on the evaluation seeds beside the best
     design."""
@@ -138,6 +141,7 @@ def validate_tune(conf: TuneConfig) -> None:
                            ("steps", t.steps, 1), ("min_episodes", t.min_episodes, 1),
                            ("max_episodes", t.max_episodes, t.min_episodes),
                            ("eval_seeds", t.eval_seeds, 0),
+                           ("eval_processes", t.eval_processes, 0),
                            ("pruner.interval", t.pruner.interval, 1),
                            ("worker", t.worker, 0)):  # fmt: skip
         if value < lo:
