@@ -212,7 +212,7 @@ def _figure(rows: list[dict[str, Any]], env: Any, out: Path) -> None:
     if env.solve_threshold is not None:
         ax.axhline(env.solve_threshold, color="grey", ls=":", lw=1)
     ax.set_xlabel("episode")
-    ax.set_ylabel("return, 100-episode mean (mean ± std over seeds)")
+    ax.set_ylabel("MA100 return, mean ± std")
     ax.set_title(f"{env.id}: tuned agents on fresh seeds")
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     fig.tight_layout()
