@@ -7,8 +7,12 @@
 
 Runs that differ in a setting that changes results (:data:`analysis.runs.SETTINGS`) are
 never averaged together: each group of settings gets its own table, headed by the settings
-that tell it apart; ``--where KEY=VALUE`` keeps one.  Writes ``result_summary.{md,csv,tex}``
-and the per-run ``run_scores.csv`` into ``--out`` (the CSVs with a ``settings`` column).
+that tell it apart; ``--where KEY=VALUE`` keeps one.  A column compares agents on equal
+terms only if they share the settings of :data:`analysis.shared.SHARED_SETTINGS`; the caption
+names every shared setting that differs between the agents of a column
+(:func:`analysis.columns.caption`).  Writes ``result_summary.{md,csv,tex}``, the per-run
+``run_scores.csv`` (the CSVs with a ``settings`` column) and ``settings.md`` (each shared
+setting's value per environment and agent) into ``--out``.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ import pandas as pd  # noqa: E402
 
 from analysis import table as tbl  # noqa: E402
 from analysis.cli import add_store_arguments, note, open_store, select_runs  # noqa: E402
+from analysis.columns import caption, settings_table  # noqa: E402
 
 
 def parse_thresholds(items: list[str]) -> dict[str, float]:
@@ -75,11 +80,12 @@ def main(argv: list[str] | None = None) -> int:
         if len(groups) == 1:
             for line in tbl.missing_lines(table, "/".join(store.statuses)):
                 note(line)
-        text = tbl.to_markdown(table, args.compare_paper) + "\n\n" + tbl.notes(table)
+        shared = caption(group)
+        text = tbl.to_markdown(table, args.compare_paper) + "\n\n" + tbl.notes(table, shared)
         if len(groups) > 1:
             text = f"Group {k} of {len(groups)}: {settings}\n\n{text}"
         texts.append(text)
-        latex.append(tbl.to_latex(table, args.compare_paper))
+        latex.append(tbl.to_latex(table, args.compare_paper, shared))
         summaries.append(table.summary.assign(settings=settings))
         scores.append(table.scores.assign(settings=settings))
     if len(groups) > 1:
@@ -96,9 +102,10 @@ def main(argv: list[str] | None = None) -> int:
     pd.concat(summaries, ignore_index=True).to_csv(args.out / "result_summary.csv", index=False)
     pd.concat(scores, ignore_index=True).to_csv(args.out / "run_scores.csv", index=False)
     (args.out / "result_summary.tex").write_text("\n".join(latex))
+    (args.out / "settings.md").write_text(settings_table(runs) + "\n")
     note(
         f"{len(runs)} runs from {store.describe()} in {time.perf_counter() - start:.1f} s; "
-        f"wrote {args.out}/result_summary.{{md,csv,tex}} and run_scores.csv"
+        f"wrote {args.out}/result_summary.{{md,csv,tex}}, run_scores.csv and settings.md"
     )
     return 0
 

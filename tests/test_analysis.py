@@ -16,6 +16,7 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from analysis import make_figures, make_table
+from analysis.columns import column_differences
 from analysis.runs import EPISODE_METRICS, RunStore, comparable_runs
 from analysis.table import run_scores
 from tests.conftest import TINY, compose_config
@@ -348,3 +349,117 @@ def test_empty_store_is_a_clear_error(
         assert uri in err and repr(experiment) in err
     assert not (tmp_path / "nothing.db").exists()
     assert not (tmp_path / "out").exists()
+
+
+COLUMN_RUNS = [
+    # (env, controller, seed, extra overrides): Acrobot as shipped (Double DQN without
+    # normalize), Cartpole with a seed only Double DQN has, Mountain car with one Double DQN
+    # seed without the radial basis features.
+    ("acrobot", "hinf_f", 0, []),
+    ("acrobot", "ddqn", 0, []),
+    ("cartpole", "hinf_f", 0, []),
+    ("cartpole", "ddqn", 0, []),
+    ("cartpole", "ddqn", 1, []),
+    ("mountaincar", "hinf_f", 0, []),
+    ("mountaincar", "hinf_f", 1, []),
+    ("mountaincar", "ddqn", 0, []),
+    ("mountaincar", "ddqn", 1, ["weights.ddqn.rbf_centres=null"]),
+]
+
+
+@pytest.fixture(scope="module")
+def column_store(tmp_path_factory: pytest.TempPathFactory) -> str:
+    """Real runs whose columns are not like for like, in three different ways."""
+    from cdqn.training.run import run
+
+    uri = f"sqlite:///{tmp_path_factory.mktemp('columns') / 'mlflow.db'}"
+    for env, ctrl, seed, extra in COLUMN_RUNS:
+        cfg = compose_config(
+            [
+                *TINY,
+                "train.episodes=2",
+                "train.signals=false",
+                f"tracking.uri={uri}",
+                f"tracking.experiment={EXPERIMENT}",
+                f"env={env}",
+                f"controller={ctrl}",
+                f"seed={seed}",
+                *extra,
+            ]
+        )
+        assert run(cfg, progress=False).status == "FINISHED"
+    return uri
+
+
+def test_caption_names_every_shared_setting_that_differs(
+    column_store: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    args = ["--tracking-uri", column_store, "--experiment", EXPERIMENT, "--out", str(tmp_path)]
+    assert make_table.main(args) == 0
+    out = capsys.readouterr().out
+    assert "Not like for like" in out
+    assert "Acrobot: env.normalize differs: ddqn false; hinf_f true" in out
+    assert "Cartpole: seed differs: ddqn 0–1; hinf_f 0" in out
+    assert "Mountain car: env.rbf_centres differs: ddqn 6 or null; hinf_f 6" in out
+    diffs = column_differences(RunStore(column_store, EXPERIMENT).runs())
+    assert {(d.env, d.key) for d in diffs} == {
+        ("acrobot", "env.normalize"),
+        ("cartpole", "seed"),
+        ("mountaincar", "env.rbf_centres"),
+    }
+    assert "Not like for like" in (tmp_path / "result_summary.tex").read_text()
+    settings = (tmp_path / "settings.md").read_text()
+    assert "| **env.normalize** | true | false |" in settings
+    assert "| env.normalize | true | true |" in settings  # Mountain car: shared
+    assert "| **env.rbf_centres** | 6 | 6 or null |" in settings
+
+
+def test_like_for_like_columns_say_so(
+    column_store: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    args = ["--tracking-uri", column_store, "--experiment", EXPERIMENT, "--out", str(tmp_path)]
+    assert make_table.main([*args, "--where", "env=mountaincar", "--where", "seed=0"]) == 0
+    out = capsys.readouterr().out
+    assert "Like for like: the agents of each column share seed, train.episodes" in out
+    assert "differs" not in out
+
+
+def test_auc_is_mean_moving_average_and_steps_count_to_solve_episode() -> None:
+    n = 6
+    episodes = pd.DataFrame(
+        {
+            "run_id": "r",
+            "env": "cartpole",
+            "controller": "hinf",
+            "seed": 0,
+            "episode": np.arange(n),
+            "episode_return": np.arange(n, dtype=float),
+            "return_ma100": np.array([0.0, 1.0, 3.0, 2.0, 5.0, 7.0]),
+            "episode_length": np.array([10.0, 20.0, 30.0, 40.0, 50.0, 60.0]),
+        }
+    )
+    runs = pd.DataFrame({"run_id": ["r"], "solve_threshold": [2.5]})
+    scores = run_scores(episodes, runs)
+    assert scores.loc[0, "auc"] == pytest.approx(3.0)
+    assert scores.loc[0, "solve_episode"] == 3
+    assert scores.loc[0, "solve_steps"] == 60.0
+
+
+def test_shipped_configs_differ_only_in_acrobot_normalize() -> None:
+    """The paper's four agents, composed as ``python -m cdqn.train`` would run them: every
+    column shares its observation map, exploration and network except Acrobot's normalize."""
+    from omegaconf import OmegaConf
+
+    from cdqn.training.tracking import flatten
+
+    rows = []
+    for env in ("cartpole", "acrobot", "mountaincar"):
+        for ctrl in ("h2", "hinf_f", "hinf", "ddqn"):
+            cfg = compose_config([f"env={env}", f"controller={ctrl}"])
+            params = flatten(OmegaConf.to_container(cfg, resolve=True))
+            row = {f"params.{k}": str(v) for k, v in params.items()}
+            rows.append({**row, "env": env, "controller": ctrl, "seed": 0})
+    diffs = column_differences(pd.DataFrame(rows))
+    assert [d.text() for d in diffs] == [
+        "Acrobot: env.normalize differs: ddqn false; h2, hinf, hinf_f true"
+    ]
