@@ -463,3 +463,74 @@ def test_shipped_configs_differ_only_in_acrobot_normalize() -> None:
     assert [d.text() for d in diffs] == [
         "Acrobot: env.normalize differs: ddqn false; h2, hinf, hinf_f true"
     ]
+
+
+def _claim_lines(text: str) -> dict[str, str]:
+    """Claim text -> the rest of its line (statistic and verdict)."""
+    lines = [ln[2:] for ln in text.splitlines() if ln.startswith("- ")]
+    return dict(ln.split(": ", 1) for ln in lines)
+
+
+def test_claims_state_statistic_and_verdict(
+    store_uri: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from scipy.stats import mannwhitneyu
+
+    args = ["--tracking-uri", store_uri, "--experiment", EXPERIMENT, "--out", str(tmp_path)]
+    assert make_table.main([*args, "--claims"]) == 0
+    out = capsys.readouterr().out
+    claims = _claim_lines((tmp_path / "claims.md").read_text())
+    assert claims == _claim_lines(out)
+
+    scores = pd.read_csv(tmp_path / "run_scores.csv")
+    cart = scores[scores["env"] == "cartpole"]
+    hinf = cart.loc[cart["controller"] == "hinf", "final_score"].to_numpy()
+    ddqn = cart.loc[cart["controller"] == "ddqn", "final_score"].to_numpy()
+    p = mannwhitneyu(hinf, ddqn, alternative="greater").pvalue
+    beats = claims["H∞ dynamic beats DDQN on Cartpole"]
+    assert f"final {hinf.mean():.2f} vs {ddqn.mean():.2f}" in beats
+    assert f"Mann–Whitney p = {p:.3g}" in beats
+    assert beats.endswith("-> does not hold")  # two seeds against two: p >= 1/6
+    assert claims["H∞ dynamic beats DDQN on Mountain car"] == (
+        "seeds: H∞ dynamic 2, DDQN 0 -> not measurable"
+    )
+    # the store's one diverged run (cartpole, no control) is among the cells' runs
+    assert (
+        claims["No divergence over all runs"]
+        == f"1 of {N_FINISHED + 1} runs diverged -> does not hold"
+    )
+
+    store = RunStore(store_uri, EXPERIMENT)
+    runs = store.runs()
+    q0, ret = [], []
+    for run_id in runs.loc[(runs["env"] == "cartpole") & (runs["controller"] == "hinf"), "run_id"]:
+        steps = store.steps(run_id)
+        firsts = steps.sort_values("step").groupby("episode").first()
+        q0.append(firsts["q1"].mean())
+        ret.append(steps.groupby("episode")["reward"].sum().mean())  # γ = 1
+    q = claims["H∞ dynamic Q-values settle below the true return on Cartpole"]
+    assert q.startswith(f"Q(s0) {np.mean(q0):.1f} vs return {np.mean(ret):.1f}")
+    below = sum(a < b for a, b in zip(q0, ret, strict=True))
+    assert f"{below}/2 seeds below" in q
+    assert q.endswith("-> holds" if below == 2 else "-> does not hold")
+
+
+def test_q_gap_discounts_with_the_agents_gamma() -> None:
+    from analysis.claims import agent_gamma, q_gap
+
+    steps = pd.DataFrame(
+        {
+            "episode": [0, 0, 0, 1, 1],
+            "step": [2, 0, 1, 0, 1],
+            "reward": [1.0, 1.0, 1.0, 2.0, 2.0],
+            "q1": [9.0, 5.0, 9.0, 7.0, 9.0],
+        }
+    )
+    gap = q_gap(steps, 0.5)
+    assert gap.q0 == pytest.approx(6.0)  # first steps: 5 and 7
+    assert gap.ret == pytest.approx(((1 + 0.5 + 0.25) + (2 + 1)) / 2)
+    assert q_gap(steps, 0.5, last=1).q0 == pytest.approx(7.0)
+    ddqn = pd.Series({"controller": "ddqn", "params.controller.discount": "0.99",
+                      "params.train.discount": "1.0"})  # fmt: skip
+    assert agent_gamma(ddqn) == 0.99
+    assert agent_gamma(ddqn.replace({"ddqn": "hinf"})) == 1.0
