@@ -7,8 +7,14 @@
 
 Runs that differ in a setting that changes results (:data:`analysis.runs.SETTINGS`) are
 never averaged together: each group of settings gets its own table, headed by the settings
-that tell it apart; ``--where KEY=VALUE`` keeps one.  Writes ``result_summary.{md,csv,tex}``
-and the per-run ``run_scores.csv`` into ``--out`` (the CSVs with a ``settings`` column).
+that tell it apart; ``--where KEY=VALUE`` keeps one.  A column compares agents on equal
+terms only if they share the settings of :data:`analysis.shared.SHARED_SETTINGS`; the caption
+names every shared setting that differs between the agents of a column
+(:func:`analysis.columns.caption`).  Writes ``result_summary.{md,csv,tex}``, the per-run
+``run_scores.csv`` (the CSVs with a ``settings`` column) and ``settings.md`` (each shared
+setting's value per environment and agent) into ``--out``.  ``--claims`` adds the paper's
+claims, each with its statistic and whether it holds (:mod:`analysis.claims`), on stdout
+and in ``claims.md``.
 """
 
 from __future__ import annotations
@@ -23,8 +29,11 @@ if __package__ in (None, ""):  # run as a script: make the repository root impor
 
 import pandas as pd  # noqa: E402
 
+from analysis import claims as cl  # noqa: E402
 from analysis import table as tbl  # noqa: E402
 from analysis.cli import add_store_arguments, note, open_store, select_runs  # noqa: E402
+from analysis.columns import caption, settings_table  # noqa: E402
+from analysis.runs import RunStore, environment, where  # noqa: E402
 
 
 def parse_thresholds(items: list[str]) -> dict[str, float]:
@@ -55,7 +64,26 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="ENV=VALUE",
         help="solve threshold for an environment (default: the runs' env.solve_threshold)",
     )
+    parser.add_argument(
+        "--claims",
+        action="store_true",
+        help="the paper's claims, each with its statistic and whether it holds",
+    )
     return parser
+
+
+def claims_text(
+    store: RunStore, runs: pd.DataFrame, scores: pd.DataFrame, conditions: list[str]
+) -> str:
+    """The claims on one group of runs: ``runs`` (the table's), their per-run ``scores``,
+    and for divergence every run of the same cells and ``--where`` conditions, any status."""
+    every = store.runs(["FINISHED", "FAILED", "KILLED", "RUNNING"])
+    every = where(every.assign(env=environment(every)), conditions)
+    cells = set(zip(runs["env"], runs["controller"], strict=True))
+    pairs = zip(every["env"], every["controller"], strict=True)
+    every = every[[pair in cells for pair in pairs]]
+    lines = [f"- {claim.line()}" for claim in cl.evaluate(scores, runs, every, store)]
+    return "Claims (analysis/claims.py):\n\n" + "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -69,17 +97,21 @@ def main(argv: list[str] | None = None) -> int:
         note(f"error: the runs in {store.describe()} have no episode metrics")
         return 1
     groups = list(runs.groupby("settings", sort=True))
-    texts, latex, summaries, scores = [], [], [], []
+    texts, latex, summaries, scores, claims = [], [], [], [], []
     for k, (settings, group) in enumerate(groups, start=1):
         table = tbl.build(episodes[episodes["run_id"].isin(group["run_id"])], group, thresholds)
         if len(groups) == 1:
             for line in tbl.missing_lines(table, "/".join(store.statuses)):
                 note(line)
-        text = tbl.to_markdown(table, args.compare_paper) + "\n\n" + tbl.notes(table)
+        shared = caption(group)
+        text = tbl.to_markdown(table, args.compare_paper) + "\n\n" + tbl.notes(table, shared)
         if len(groups) > 1:
             text = f"Group {k} of {len(groups)}: {settings}\n\n{text}"
+        if args.claims:
+            claims.append(claims_text(store, group, table.scores, args.where))
+            text += "\n\n" + claims[-1]
         texts.append(text)
-        latex.append(tbl.to_latex(table, args.compare_paper))
+        latex.append(tbl.to_latex(table, args.compare_paper, shared))
         summaries.append(table.summary.assign(settings=settings))
         scores.append(table.scores.assign(settings=settings))
     if len(groups) > 1:
@@ -96,9 +128,12 @@ def main(argv: list[str] | None = None) -> int:
     pd.concat(summaries, ignore_index=True).to_csv(args.out / "result_summary.csv", index=False)
     pd.concat(scores, ignore_index=True).to_csv(args.out / "run_scores.csv", index=False)
     (args.out / "result_summary.tex").write_text("\n".join(latex))
+    (args.out / "settings.md").write_text(settings_table(runs) + "\n")
+    if claims:
+        (args.out / "claims.md").write_text("\n\n".join(claims) + "\n")
     note(
         f"{len(runs)} runs from {store.describe()} in {time.perf_counter() - start:.1f} s; "
-        f"wrote {args.out}/result_summary.{{md,csv,tex}} and run_scores.csv"
+        f"wrote {args.out}/result_summary.{{md,csv,tex}}, run_scores.csv and settings.md"
     )
     return 0
 

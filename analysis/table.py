@@ -6,7 +6,12 @@ them if it has fewer) and the *solve episode* is the first episode, counted from
 Per (controller, environment) cell: mean ± std of the final scores over seeds (population
 std, ``ddof = 0``), the number of seeds, how many of them solved and the median solve
 episode, where a seed that never solved counts as never (so the median is "n/a" once half
-the seeds or more never solved).  The best mean of each environment is bold.
+the seeds or more never solved).  The *area under the learning curve* (AUC) of a run is the
+mean of its ``return_ma100`` over all its episodes: how early and how well it learned in one
+number (a run that learns sooner has the larger AUC at equal final score); a cell shows its
+mean over seeds.  With ``episode_length`` in the episodes, a run's *solve steps* are the
+environment steps up to and including its solve episode (environment interactions needed).
+The best mean of each environment is bold.
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ LAST_EPISODES = 100
 """Episodes averaged for a run's final score (paper: "final scores after 2000 episodes")."""
 STD_DDOF = 0
 """Delta degrees of freedom of the std over seeds (NumPy's default)."""
-TABLE_METRICS = ("episode_return", "return_ma100")
+TABLE_METRICS = ("episode_return", "return_ma100", "episode_length")
 """The only metrics the table reads."""
 
 
@@ -39,8 +44,8 @@ class Table(NamedTuple):
     """Per-run scores and the per-cell summary behind the rendered tables."""
 
     scores: pd.DataFrame
-    """One row per run: ``run_id, env, controller, seed, episodes, final_score,
-    solve_threshold, solve_episode``."""
+    """One row per run: ``run_id, env, controller, seed, episodes, final_score, auc,
+    solve_threshold, solve_episode, solve_steps``."""
     summary: pd.DataFrame
     """One row per present (controller, env) cell, see :func:`summarize`."""
     controllers: list[str]
@@ -66,10 +71,9 @@ def run_scores(
         env = str(df["env"].iloc[0])
         threshold = float(thresholds.get(env, info.at[run_id, "solve_threshold"]))
         returns = df["episode_return"].to_numpy(dtype=float)
+        ma100 = df["return_ma100"].to_numpy(dtype=float)
         reached = (
-            np.flatnonzero(df["return_ma100"].to_numpy(dtype=float) >= threshold)
-            if np.isfinite(threshold)
-            else np.zeros(0, dtype=int)
+            np.flatnonzero(ma100 >= threshold) if np.isfinite(threshold) else np.zeros(0, dtype=int)
         )
         rows.append(
             {
@@ -79,10 +83,12 @@ def run_scores(
                 "seed": df["seed"].iloc[0],
                 "episodes": len(df),
                 "final_score": float(np.mean(returns[-last:])),
+                "auc": float(np.mean(ma100)),
                 "solve_threshold": threshold,
                 "solve_episode": (
                     float(df["episode"].iloc[reached[0]] + 1) if reached.size else np.nan
                 ),
+                "solve_steps": _solve_steps(df, reached),
             }
         )
     cols = [
@@ -92,17 +98,28 @@ def run_scores(
         "seed",
         "episodes",
         "final_score",
+        "auc",
         "solve_threshold",
         "solve_episode",
+        "solve_steps",
     ]
     return pd.DataFrame(rows, columns=cols)
+
+
+def _solve_steps(df: pd.DataFrame, reached: np.ndarray) -> float:
+    """Environment steps of the episodes up to and including the first that reached the
+    threshold (NaN if none did or the run has no ``episode_length``)."""
+    if not reached.size or "episode_length" not in df.columns:
+        return np.nan
+    return float(df["episode_length"].to_numpy(dtype=float)[: reached[0] + 1].sum())
 
 
 def summarize(scores: pd.DataFrame) -> pd.DataFrame:
     """One row per (controller, env) present in ``scores``.
 
-    Columns ``controller, env, n_seeds, mean, std, min_episodes, max_episodes,
-    solve_threshold, n_solved, median_solve_episode, paper_mean, paper_std, best``
+    Columns ``controller, env, n_seeds, mean, std, auc_mean, auc_std, min_episodes,
+    max_episodes, solve_threshold, n_solved, median_solve_episode, paper_mean, paper_std,
+    best``
     (``best``: the highest mean of its environment; ties are all best).
     """
     rows = []
@@ -118,6 +135,8 @@ def summarize(scores: pd.DataFrame) -> pd.DataFrame:
                 "n_seeds": len(df),
                 "mean": float(df["final_score"].mean()),
                 "std": float(np.std(df["final_score"].to_numpy(dtype=float), ddof=STD_DDOF)),
+                "auc_mean": float(df["auc"].mean()),
+                "auc_std": float(np.std(df["auc"].to_numpy(dtype=float), ddof=STD_DDOF)),
                 "min_episodes": int(df["episodes"].min()),
                 "max_episodes": int(df["episodes"].max()),
                 "solve_threshold": float(thresholds[0]) if len(thresholds) == 1 else np.nan,
@@ -180,7 +199,7 @@ def _solve_text(row: pd.Series) -> str:
         return "solve n/a"
     median = row["median_solve_episode"]
     ep = f"{median:.0f}" if np.isfinite(median) else "n/a"
-    return f"solve ep. {ep}, {row['n_solved']}/{row['n_seeds']}"
+    return f"solve ep. {ep}, {row['n_solved']}/{row['n_seeds']} reach"
 
 
 def to_markdown(table: Table, compare_paper: bool = False) -> str:
@@ -197,7 +216,7 @@ def to_markdown(table: Table, compare_paper: bool = False) -> str:
             score = f"{row['mean']:.2f} ± {row['std']:.2f}"
             if row["best"]:
                 score = f"**{score}**"
-            text = f"{score} (n={row['n_seeds']}; {_solve_text(row)})"
+            text = f"{score} (n={row['n_seeds']}; {_solve_text(row)}; AUC {row['auc_mean']:.1f})"
             if compare_paper:
                 text += " " + _paper_text(row)
             cells.append(text)
@@ -211,8 +230,9 @@ def _paper_text(row: pd.Series) -> str:
     return f"[paper: {row['paper_mean']:.2f} ± {row['paper_std']:.2f}]"
 
 
-def notes(table: Table) -> str:
-    """What the numbers mean, for under the Markdown table."""
+def notes(table: Table, caption: str = "") -> str:
+    """What the numbers mean, for under the Markdown table; ``caption`` (what the agents of
+    each column share, :func:`analysis.columns.caption`) follows."""
     s = table.summary
     episodes = f"{s['min_episodes'].min()}–{s['max_episodes'].max()}"
     if s["min_episodes"].min() == s["max_episodes"].max():
@@ -226,20 +246,26 @@ def notes(table: Table) -> str:
         f"Final score: mean return of each run's last {LAST_EPISODES} episodes "
         f"({episodes} episodes per run); mean ± std over seeds (ddof={STD_DDOF}); best mean per "
         "environment in bold. n = seeds; solve ep. = median first episode (from 1) with "
-        f"return_ma100 ≥ threshold ({thresholds or 'none'}), k/n = seeds that reached it."
+        f"return_ma100 ≥ threshold ({thresholds or 'none'}), k/n reach = seeds that reached "
+        "it; AUC = mean over seeds of each run's return_ma100 averaged over its episodes."
+        + (f" {caption}" if caption else "")
     )
 
 
-def to_latex(table: Table, compare_paper: bool = False) -> str:
-    """A ``table`` float with a booktabs ``tabular``, labelled ``tab:result_summary``."""
+def to_latex(table: Table, compare_paper: bool = False, caption: str = "") -> str:
+    """A ``table`` float with a booktabs ``tabular``, labelled ``tab:result_summary``;
+    ``caption`` (what the agents of each column share) ends the caption."""
     cols = "l" + "c" * len(table.envs)
     lines = [
         r"% Generated by analysis/make_table.py; needs \usepackage{booktabs}.",
         r"\begin{table}[htb]",
         r"\centering",
         r"\caption{Final scores: mean $\pm$ std over seeds of the mean return of each run's "
-        rf"last {LAST_EPISODES} episodes; below, seeds $n$ and median episode at which the "
-        r"100-episode moving average first reaches the solve threshold.}",
+        rf"last {LAST_EPISODES} episodes; below, seeds $n$, median episode at which the "
+        r"100-episode moving average first reaches the solve threshold, seeds that reach it "
+        r"and the area under the learning curve (AUC, mean moving average over the episodes). "
+        + _latex_escape(caption)
+        + "}",
         r"\label{tab:result_summary}",
         rf"\begin{{tabular}}{{{cols}}}",
         r"\toprule",
@@ -258,7 +284,10 @@ def to_latex(table: Table, compare_paper: bool = False) -> str:
             scores.append(rf"$\mathbf{{{body}}}$" if row["best"] else f"${body}$")
             median = row["median_solve_episode"]
             ep = f"{median:.0f}" if np.isfinite(median) else "n/a"
-            extra = rf"\scriptsize $n={row['n_seeds']}$, ep.~{ep}"
+            extra = (
+                rf"\scriptsize $n={row['n_seeds']}$, ep.~{ep}, "
+                rf"{row['n_solved']}/{row['n_seeds']}, AUC ${row['auc_mean']:.1f}$"
+            )
             if compare_paper and np.isfinite(row["paper_mean"]):
                 extra += rf"; paper ${row['paper_mean']:.2f} \pm {row['paper_std']:.2f}$"
             extras.append(extra)

@@ -16,6 +16,7 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from analysis import make_figures, make_table
+from analysis.columns import column_differences
 from analysis.runs import EPISODE_METRICS, RunStore, comparable_runs
 from analysis.table import run_scores
 from tests.conftest import TINY, compose_config
@@ -352,3 +353,188 @@ def test_empty_store_is_a_clear_error(
         assert uri in err and repr(experiment) in err
     assert not (tmp_path / "nothing.db").exists()
     assert not (tmp_path / "out").exists()
+
+
+COLUMN_RUNS = [
+    # (env, controller, seed, extra overrides): Acrobot as shipped (Double DQN without
+    # normalize), Cartpole with a seed only Double DQN has, Mountain car with one Double DQN
+    # seed without the radial basis features.
+    ("acrobot", "hinf_f", 0, []),
+    ("acrobot", "ddqn", 0, []),
+    ("cartpole", "hinf_f", 0, []),
+    ("cartpole", "ddqn", 0, []),
+    ("cartpole", "ddqn", 1, []),
+    ("mountaincar", "hinf_f", 0, []),
+    ("mountaincar", "hinf_f", 1, []),
+    ("mountaincar", "ddqn", 0, []),
+    ("mountaincar", "ddqn", 1, ["weights.ddqn.rbf_centres=null"]),
+]
+
+
+@pytest.fixture(scope="module")
+def column_store(tmp_path_factory: pytest.TempPathFactory) -> str:
+    """Real runs whose columns are not like for like, in three different ways."""
+    from cdqn.training.run import run
+
+    uri = f"sqlite:///{tmp_path_factory.mktemp('columns') / 'mlflow.db'}"
+    for env, ctrl, seed, extra in COLUMN_RUNS:
+        cfg = compose_config(
+            [
+                *TINY,
+                "train.episodes=2",
+                "train.signals=false",
+                f"tracking.uri={uri}",
+                f"tracking.experiment={EXPERIMENT}",
+                f"env={env}",
+                f"controller={ctrl}",
+                f"seed={seed}",
+                *extra,
+            ]
+        )
+        assert run(cfg, progress=False).status == "FINISHED"
+    return uri
+
+
+def test_caption_names_every_shared_setting_that_differs(
+    column_store: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    args = ["--tracking-uri", column_store, "--experiment", EXPERIMENT, "--out", str(tmp_path)]
+    assert make_table.main(args) == 0
+    out = capsys.readouterr().out
+    assert "Not like for like" in out
+    assert "Acrobot: env.normalize differs: ddqn false; hinf_f true" in out
+    assert "Cartpole: seed differs: ddqn 0–1; hinf_f 0" in out
+    assert "Mountain car: env.rbf_centres differs: ddqn 6 or null; hinf_f 6" in out
+    diffs = column_differences(RunStore(column_store, EXPERIMENT).runs())
+    assert {(d.env, d.key) for d in diffs} == {
+        ("acrobot", "env.normalize"),
+        ("cartpole", "seed"),
+        ("mountaincar", "env.rbf_centres"),
+    }
+    assert "Not like for like" in (tmp_path / "result_summary.tex").read_text()
+    settings = (tmp_path / "settings.md").read_text()
+    assert "| **env.normalize** | true | false |" in settings
+    assert "| env.normalize | true | true |" in settings  # Mountain car: shared
+    assert "| **env.rbf_centres** | 6 | 6 or null |" in settings
+
+
+def test_like_for_like_columns_say_so(
+    column_store: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    args = ["--tracking-uri", column_store, "--experiment", EXPERIMENT, "--out", str(tmp_path)]
+    assert make_table.main([*args, "--where", "env=mountaincar", "--where", "seed=0"]) == 0
+    out = capsys.readouterr().out
+    assert "Like for like: the agents of each column share seed, train.episodes" in out
+    assert "differs" not in out
+
+
+def test_auc_is_mean_moving_average_and_steps_count_to_solve_episode() -> None:
+    n = 6
+    episodes = pd.DataFrame(
+        {
+            "run_id": "r",
+            "env": "cartpole",
+            "controller": "hinf",
+            "seed": 0,
+            "episode": np.arange(n),
+            "episode_return": np.arange(n, dtype=float),
+            "return_ma100": np.array([0.0, 1.0, 3.0, 2.0, 5.0, 7.0]),
+            "episode_length": np.array([10.0, 20.0, 30.0, 40.0, 50.0, 60.0]),
+        }
+    )
+    runs = pd.DataFrame({"run_id": ["r"], "solve_threshold": [2.5]})
+    scores = run_scores(episodes, runs)
+    assert scores.loc[0, "auc"] == pytest.approx(3.0)
+    assert scores.loc[0, "solve_episode"] == 3
+    assert scores.loc[0, "solve_steps"] == 60.0
+
+
+def test_shipped_configs_differ_only_in_acrobot_normalize() -> None:
+    """The paper's four agents, composed as ``python -m cdqn.train`` would run them: every
+    column shares its observation map, exploration and network except Acrobot's normalize."""
+    from omegaconf import OmegaConf
+
+    from cdqn.training.tracking import flatten
+
+    rows = []
+    for env in ("cartpole", "acrobot", "mountaincar"):
+        for ctrl in ("h2", "hinf_f", "hinf", "ddqn"):
+            cfg = compose_config([f"env={env}", f"controller={ctrl}"])
+            params = flatten(OmegaConf.to_container(cfg, resolve=True))
+            row = {f"params.{k}": str(v) for k, v in params.items()}
+            rows.append({**row, "env": env, "controller": ctrl, "seed": 0})
+    diffs = column_differences(pd.DataFrame(rows))
+    assert [d.text() for d in diffs] == [
+        "Acrobot: env.normalize differs: ddqn false; h2, hinf, hinf_f true"
+    ]
+
+
+def _claim_lines(text: str) -> dict[str, str]:
+    """Claim text -> the rest of its line (statistic and verdict)."""
+    lines = [ln[2:] for ln in text.splitlines() if ln.startswith("- ")]
+    return dict(ln.split(": ", 1) for ln in lines)
+
+
+def test_claims_state_statistic_and_verdict(
+    store_uri: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from scipy.stats import mannwhitneyu
+
+    args = ["--tracking-uri", store_uri, "--experiment", EXPERIMENT, "--out", str(tmp_path)]
+    assert make_table.main([*args, "--claims"]) == 0
+    out = capsys.readouterr().out
+    claims = _claim_lines((tmp_path / "claims.md").read_text())
+    assert claims == _claim_lines(out)
+
+    scores = pd.read_csv(tmp_path / "run_scores.csv")
+    cart = scores[scores["env"] == "cartpole"]
+    hinf = cart.loc[cart["controller"] == "hinf", "final_score"].to_numpy()
+    ddqn = cart.loc[cart["controller"] == "ddqn", "final_score"].to_numpy()
+    p = mannwhitneyu(hinf, ddqn, alternative="greater").pvalue
+    beats = claims["H∞ dynamic beats DDQN on Cartpole"]
+    assert f"final {hinf.mean():.2f} vs {ddqn.mean():.2f}" in beats
+    assert f"Mann–Whitney p = {p:.3g}" in beats
+    assert beats.endswith("-> does not hold")  # two seeds against two: p >= 1/6
+    assert claims["H∞ dynamic beats DDQN on Mountain car"] == (
+        "seeds: H∞ dynamic 2, DDQN 0 -> not measurable"
+    )
+    # the store's one diverged run (cartpole, no control) is among the cells' runs
+    assert (
+        claims["No divergence over all runs"]
+        == f"1 of {N_FINISHED + 1} runs diverged -> does not hold"
+    )
+
+    store = RunStore(store_uri, EXPERIMENT)
+    runs = store.runs()
+    q0, ret = [], []
+    for run_id in runs.loc[(runs["env"] == "cartpole") & (runs["controller"] == "hinf"), "run_id"]:
+        steps = store.steps(run_id)
+        firsts = steps.sort_values("step").groupby("episode").first()
+        q0.append(firsts["q1"].mean())
+        ret.append(steps.groupby("episode")["reward"].sum().mean())  # γ = 1
+    q = claims["H∞ dynamic Q-values settle below the true return on Cartpole"]
+    assert q.startswith(f"Q(s0) {np.mean(q0):.1f} vs return {np.mean(ret):.1f}")
+    below = sum(a < b for a, b in zip(q0, ret, strict=True))
+    assert f"{below}/2 seeds below" in q
+    assert q.endswith("-> holds" if below == 2 else "-> does not hold")
+
+
+def test_q_gap_discounts_with_the_agents_gamma() -> None:
+    from analysis.claims import agent_gamma, q_gap
+
+    steps = pd.DataFrame(
+        {
+            "episode": [0, 0, 0, 1, 1],
+            "step": [2, 0, 1, 0, 1],
+            "reward": [1.0, 1.0, 1.0, 2.0, 2.0],
+            "q1": [9.0, 5.0, 9.0, 7.0, 9.0],
+        }
+    )
+    gap = q_gap(steps, 0.5)
+    assert gap.q0 == pytest.approx(6.0)  # first steps: 5 and 7
+    assert gap.ret == pytest.approx(((1 + 0.5 + 0.25) + (2 + 1)) / 2)
+    assert q_gap(steps, 0.5, last=1).q0 == pytest.approx(7.0)
+    ddqn = pd.Series({"controller": "ddqn", "params.controller.discount": "0.99",
+                      "params.train.discount": "1.0"})  # fmt: skip
+    assert agent_gamma(ddqn) == 0.99
+    assert agent_gamma(ddqn.replace({"ddqn": "hinf"})) == 1.0

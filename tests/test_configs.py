@@ -103,10 +103,11 @@ def test_double_dqn_takes_its_environments_settings_unless_overridden() -> None:
     assert compose_config(["controller=hinf_f", "env=acrobot"]).env.normalize  # the NTK box's
 
 
-def test_mountain_car_features_and_integrator_belong_to_the_controlled_agents() -> None:
-    """Mountain car's controlled agents see 6 x 6 radial basis features and keep x_e across
-    episodes (conf/env/mountaincar.yaml, conf/weights/mountaincar.yaml); Double DQN sees the
-    scaled observation; elsewhere x_e is reset as the research code does."""
+def test_mountain_car_features_shared_and_integrator_kept_by_the_controlled_agents() -> None:
+    """Every Mountain car agent sees 6 x 6 radial basis features (conf/env/mountaincar.yaml;
+    Double DQN through weights.ddqn.rbf_centres); the controlled agents keep x_e across
+    episodes (conf/weights/mountaincar.yaml); elsewhere x_e is reset as the research code
+    does."""
 
     def inputs_and_reset(*overrides: str) -> tuple[int, bool]:
         conf: Config = OmegaConf.to_object(compose_config(list(overrides)))  # type: ignore[assignment]
@@ -119,7 +120,12 @@ def test_mountain_car_features_and_integrator_belong_to_the_controlled_agents() 
         assert inputs_and_reset("env=mountaincar", f"controller={ctrl}") == (36, False)
         assert inputs_and_reset("env=acrobot", f"controller={ctrl}") == (6, True)
         assert inputs_and_reset("env=cartpole", f"controller={ctrl}") == (4, True)
-    assert inputs_and_reset("env=mountaincar", "controller=ddqn")[0] == 2
+    assert inputs_and_reset("env=mountaincar", "controller=ddqn")[0] == 36
+    assert inputs_and_reset("env=acrobot", "controller=ddqn")[0] == 6
+    assert (
+        inputs_and_reset("env=mountaincar", "controller=ddqn", "weights.ddqn.rbf_centres=null")[0]
+        == 2
+    )
     assert inputs_and_reset("env=mountaincar", "controller=ddqn", "env.rbf_centres=4")[0] == 16
     assert inputs_and_reset("env=mountaincar", "controller=h2", "env.rbf_centres=null",
                             "controller.reset_integrator=true") == (2, True)  # fmt: skip
