@@ -76,7 +76,11 @@ def main(cfg: DictConfig) -> float:
             raise
         log.exception("job failed")
         return float("nan")
-    record_job(result.status, result.run_id, result.reason, result.final_score, solve_text(result))
+    seed = None if cfg.get("resume") else int(cfg.seed)  # a population's first member
+    record_job(
+        result.status, result.run_id, result.reason, result.final_score, solve_text(result),
+        members=result.members, seed=seed,
+    )  # fmt: skip
     if result.status == OUTAGE:
         sys.exit(EXIT_OUTAGE)
     if not multirun:

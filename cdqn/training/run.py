@@ -20,7 +20,8 @@ from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
 from cdqn.config import Config, ConfigError, resolve_tracking_uri, validate
 from cdqn.envs import adopt_env_id, make_env
-from cdqn.training.build import batchable, member_config, member_seeds
+from cdqn.training.batching import batchable
+from cdqn.training.build import member_config, member_seeds
 from cdqn.training.population import resume_population, start_population
 from cdqn.training.population_checkpoint import population_runs
 from cdqn.training.population_loop import Member
@@ -72,7 +73,7 @@ def run_population(
     """Train seeds ``seed … seed+population−1`` of ``cfg``, each as its own MLflow run: as
     one batch (:func:`cdqn.training.population.start_population`, where ``observe`` and
     ``should_stop`` serve :mod:`cdqn.tune`) when the configuration allows it
-    (:func:`cdqn.training.build.batchable`), else one single run after another."""
+    (:func:`cdqn.training.batching.batchable`), else one single run after another."""
     conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
     validate(conf)
     if batchable(conf):
