@@ -2,7 +2,7 @@
 
     python -m cdqn.train                                   # env=cartpole controller=hinf
     python -m cdqn.train env=acrobot controller=hinf_f seed=3 train.episodes=500
-    python -m cdqn.train -m controller=h2,hinf,hinf_f,ddqn seed='range(10)'
+    python -m cdqn.train -m controller=h2,hinf,hinf_f,ddqn seed='range(10)'  # 4 populations
     python -m cdqn.train resume=<run_id>                   # continue an interrupted run
 
 Exit status: 0 finished (or a multirun that ran; its summary lists failed jobs), 1 the run
