@@ -2,7 +2,7 @@
 
     python -m cdqn.train                                   # env=cartpole controller=hinf
     python -m cdqn.train env=acrobot controller=hinf_f seed=3 train.episodes=500
-    python -m cdqn.train -m controller=h2,hinf,hinf_f,ddqn seed='range(10)'
+    python -m cdqn.train -m controller=h2,hinf,hinf_f,ddqn seed='range(10)'  # 4 populations
     python -m cdqn.train resume=<run_id>                   # continue an interrupted run
 
 Exit status: 0 finished (or a multirun that ran; its summary lists failed jobs), 1 the run
@@ -76,7 +76,11 @@ def main(cfg: DictConfig) -> float:
             raise
         log.exception("job failed")
         return float("nan")
-    record_job(result.status, result.run_id, result.reason, result.final_score, solve_text(result))
+    seed = None if cfg.get("resume") else int(cfg.seed)  # a population's first member
+    record_job(
+        result.status, result.run_id, result.reason, result.final_score, solve_text(result),
+        members=result.members, seed=seed,
+    )  # fmt: skip
     if result.status == OUTAGE:
         sys.exit(EXIT_OUTAGE)
     if not multirun:

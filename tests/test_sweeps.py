@@ -194,11 +194,13 @@ def test_an_interrupted_local_sweep_started_again_skips_what_finished(tmp_path: 
 RESTART = [
     "env=cartpole",
     "controller=hinf_f,ddqn",
+    "seed=range(2)",  # the cdqn sweeper makes each controller's two seeds one population
     "network=small",
+    "controller.learning_starts=50",
     "train.episodes=400",  # both populations train long enough to be caught mid-way
     "controller.train_freq=1",  # Double DQN: a minibatch every step (slower, caught mid-way too)
     "train.checkpoint_every=10",
-    "train.population=2",
+    "tracking.skip_finished=true",
     "hydra.launcher.n_jobs=2",
 ]
 
@@ -212,9 +214,10 @@ CHECKPOINTS = "mlruns/*/*/artifacts/checkpoint/slot-a/state.pt"
 
 @pytest.mark.slow
 def test_a_killed_sweep_started_again_continues_itsruns_of(tmp_path: Path) -> None:
-    """A real sweep (joblib launcher, two jobs in parallel: an H∞ population and Double DQN
-    seeds) gets SIGKILL in its whole process group while both jobs are mid-way (or, where the
-    launcher runs them one after the other, while the second is); the same command again
+    """A real sweep (joblib launcher, two jobs in parallel: each controller's two seeds as one
+    population, batched by the cdqn sweeper) gets SIGKILL in its whole process group while
+    both jobs are mid-way (or, where the launcher runs them one after the other, while the
+    second is); the same command again
     continues the runs it left RUNNING (no new runs) and the final store equals an
     uninterrupted sweep's: returns and signal rows of every seed."""
     env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"}
@@ -226,10 +229,6 @@ def test_a_killed_sweep_started_again_continues_itsruns_of(tmp_path: Path) -> No
             "-m",
             "cdqn.train",
             "-m",
-            "--config-dir",
-            str(SWEEPS),
-            "--config-name",
-            "smoke",
             *RESTART,
             f"hydra.sweep.dir={folder / 'multirun'}",
         ]
@@ -245,6 +244,7 @@ def test_a_killed_sweep_started_again_continues_itsruns_of(tmp_path: Path) -> No
         timeout=600,
     )
     assert ref.returncode == 0, ref.stderr[-3000:]
+    assert "cdqn sweeper: 4 jobs as 2" in ref.stdout + ref.stderr
     uri = f"sqlite:///{folders['killed'] / 'mlflow.db'}"
     proc = subprocess.Popen(
         command(folders["killed"]),
@@ -291,7 +291,7 @@ def test_a_killed_sweep_started_again_continues_itsruns_of(tmp_path: Path) -> No
     for key, r in after.items():
         if key in before:  # continued in the same run, not trained again in a new one
             assert r.info.run_id == before[key].info.run_id  # type: ignore[attr-defined]
-        assert r.info.status == "FINISHED"
+        assert r.info.status == "FINISHED" and r.data.tags["population"] == "0-1"
         client = MlflowClient(uri)
         other = MlflowClient(f"sqlite:///{folders['reference'] / 'mlflow.db'}")
         ours = episode_returns(client, r.info.run_id)

@@ -65,21 +65,6 @@ def member_config(cfg: DictConfig, seed: int) -> DictConfig:
     return out
 
 
-def batchable(conf: Config) -> bool:
-    """Whether the members train as one batch: :class:`ControlledPopulation` (its
-    controllers are the runtime controllers
-    :class:`cdqn.training.population_step.ControllerArrays` knows) or :class:`DDQNPopulation`,
-    both on the fast path, with one design for all members (a measured NTK box builds each
-    seed's design on its own network, :mod:`cdqn.ntk_bounds`)."""
-    ctrl = conf.controller
-    measured = (
-        ctrl.synthesis.ntk_bounds == "measured"
-        and ctrl.design == "synthesize"
-        and ctrl.name in ("hinf", "hinf_f", "h2")
-    )
-    return conf.train.fast_path and not measured
-
-
 def build_population(
     conf: Config, setup: ControllerSetup, seeds: list[int]
 ) -> tuple[ControlledPopulation | DDQNPopulation, VectorEnv]:

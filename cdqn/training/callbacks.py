@@ -1,9 +1,10 @@
 """The end of a multirun: which jobs finished, which failed, and why.
 
 Every job writes its outcome to ``cdqn_job.json`` in its Hydra output folder
-(:func:`record_job`); :class:`MultirunSummary`, registered under ``hydra.callbacks`` in
-``conf/config.yaml``, reads them all once the sweep is over, prints a table and writes
-``summary.json`` into the sweep folder.  The files work with every launcher (in-process,
+(:func:`record_job`), a population job one entry per member (seed) besides;
+:class:`MultirunSummary`, registered under ``hydra.callbacks`` in ``conf/config.yaml``,
+reads them all once the sweep is over, prints a table with one line per run (per seed)
+and writes ``summary.json`` into the sweep folder.  The files work with every launcher (in-process,
 joblib workers, Slurm jobs on a shared file system).
 """
 
@@ -12,12 +13,15 @@ from __future__ import annotations
 import json
 import logging
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
+
+from cdqn.training.result import RunResult, solve_text
 
 log = logging.getLogger("cdqn")
 
@@ -31,27 +35,64 @@ def record_job(
     reason: str | None = None,
     final_score: float | None = None,
     solved: str | None = None,
+    members: Sequence[RunResult] = (),
+    seed: int | None = None,
 ) -> None:
     """Write this Hydra job's outcome (status FINISHED, FAILED, KILLED or REFUSED), its
     final score and whether it reached the solve threshold (``solved``, e.g. ``not
-    solved``)."""
+    solved``); for a population, each member's too (``members`` in seed order, the first
+    being seed ``seed``: :func:`member_entries`)."""
     try:
         hc = HydraConfig.get()
     except ValueError:  # not under Hydra (tests, notebooks)
         return
-    score = None if final_score is None or not math.isfinite(final_score) else final_score
-    data = {
+    overrides = list(hc.overrides.task)
+    data: dict[str, Any] = {
         "job": hc.job.get("num"),
-        "overrides": list(hc.overrides.task),
+        "overrides": overrides,
         "status": status,
         "run_id": run_id,
         "reason": reason,
-        "final_score": score,
+        "final_score": _finite(final_score),
         "solved": solved,
     }
+    if members:
+        data["members"] = member_entries(members, seed, overrides)
     out = Path(hc.runtime.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / JOB_FILE).write_text(json.dumps(data, indent=1))
+
+
+def _finite(score: float | None) -> float | None:
+    return None if score is None or not math.isfinite(score) else score
+
+
+def member_entries(
+    members: Sequence[RunResult], seed: int | None, overrides: list[str]
+) -> list[dict[str, Any]]:
+    """One entry per member of a population job: its seed (``seed + i``; None when unknown),
+    the overrides of the single run it stands for (the job's, with that seed and without
+    ``train.population``), status, run, reason, final score and solve."""
+    out = []
+    for i, result in enumerate(members):
+        own = None if seed is None else seed + i
+        keys = [o.partition("=")[0] for o in overrides]
+        lines = [o for o, k in zip(overrides, keys, strict=True) if k != "train.population"]
+        if own is not None:
+            lines = [f"seed={own}" if o.partition("=")[0] == "seed" else o for o in lines]
+            lines += [] if "seed" in keys else [f"seed={own}"]
+        out.append(
+            {
+                "seed": own,
+                "overrides": lines,
+                "status": result.status,
+                "run_id": result.run_id,
+                "reason": result.reason,
+                "final_score": _finite(result.final_score),
+                "solved": solve_text(result),
+            }
+        )
+    return out
 
 
 def summarize(sweep_dir: Path) -> list[dict[str, Any]]:
@@ -78,23 +119,26 @@ def summarize(sweep_dir: Path) -> list[dict[str, Any]]:
 
 
 def format_summary(jobs: list[dict[str, Any]], sweep_dir: Path) -> str:
+    """The table: a header counting statuses, one line per run (each member of a population
+    job on its own line, with its seed), a failed one followed by its reason."""
+    rows = [(job, entry) for job in jobs for entry in job.get("members") or [job]]
     counts: dict[str, int] = {}
-    for job in jobs:
-        counts[job["status"]] = counts.get(job["status"], 0) + 1
+    for _, entry in rows:
+        counts[entry["status"]] = counts.get(entry["status"], 0) + 1
     head = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
-    lines = [f"cdqn multirun {sweep_dir}: {len(jobs)} jobs: {head}"]
-    for job in jobs:
+    runs = f" ({len(rows)} runs)" if len(rows) != len(jobs) else ""
+    lines = [f"cdqn multirun {sweep_dir}: {len(jobs)} jobs{runs}: {head}"]
+    for job, entry in rows:
         name = Path(job["dir"]).relative_to(sweep_dir) if job["dir"] else "?"
-        run = f"run {job['run_id']}" if job.get("run_id") else "no run"
-        score = job.get("final_score")
+        run = f"run {entry['run_id']}" if entry.get("run_id") else "no run"
+        score = entry.get("final_score")
         result = "" if score is None else f"score {score:8.2f}"
-        if job.get("solved"):
-            result += f" ({job['solved']})"
-        line = (
-            f"  {str(name):>4}  {job['status']:<8}  {run}  {result}  {' '.join(job['overrides'])}"
-        )
-        if job["status"] != "FINISHED" and job.get("reason"):
-            line += f"\n          -> {job['reason']}"
+        if entry.get("solved"):
+            result += f" ({entry['solved']})"
+        overrides = " ".join(entry["overrides"])
+        line = f"  {str(name):>4}  {entry['status']:<8}  {run}  {result}  {overrides}"
+        if entry["status"] != "FINISHED" and entry.get("reason"):
+            line += f"\n          -> {entry['reason']}"
         lines.append(line)
     return "\n".join(lines)
 

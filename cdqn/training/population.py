@@ -103,7 +103,7 @@ def start_population(
     should_stop: Callable[[], bool] | None = None,
 ) -> PopulationResult:
     """Train seeds ``seed … seed+population−1`` of ``cfg`` as one batch (the configuration
-    must be :func:`cdqn.training.build.batchable`), each as its own MLflow run (module
+    must be :func:`cdqn.training.batching.batchable`), each as its own MLflow run (module
     docstring).  With ``tracking.skip_finished`` members that FINISHED are skipped and
     KILLED ones continued.  ``observe(member)`` is called after each recorded episode and a
     true ``should_stop()`` ends the population as a signal does (members KILLED); both

@@ -20,7 +20,8 @@ from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
 from cdqn.config import ConfigError, resolve_tracking_uri
 from cdqn.envs import Adopted, adopt, make_env
-from cdqn.training.build import batchable, member_config, member_seeds
+from cdqn.training.batching import batchable
+from cdqn.training.build import member_config, member_seeds
 from cdqn.training.population import resume_population, start_population
 from cdqn.training.population_checkpoint import population_runs
 from cdqn.training.population_loop import Member
@@ -83,7 +84,7 @@ def run_population(
     """Train seeds ``seed … seed+population−1`` of ``cfg``, each as its own MLflow run: as
     one batch (:func:`cdqn.training.population.start_population`, where ``observe`` and
     ``should_stop`` serve :mod:`cdqn.tune`) when the configuration allows it
-    (:func:`cdqn.training.build.batchable`), else one single run after another.  The
+    (:func:`cdqn.training.batching.batchable`), else one single run after another.  The
     configuration is adopted by its environment first (:func:`cdqn.envs.adopt`)."""
     return _population(adopted_config(cfg), progress, observe, should_stop)
 

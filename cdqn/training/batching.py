@@ -1,0 +1,155 @@
+"""Which seeds train as one batch: the configurations a population can train
+(:func:`batchable`), and a multirun's jobs regrouped into populations (:func:`batch_jobs`).
+
+A multirun over seeds, ``python -m cdqn.train -m controller=h2,ddqn seed='range(10)'``,
+expands (as Hydra's basic sweeper does) into one job per seed.  The cdqn sweeper
+(``hydra_plugins/cdqn_sweeper``, selected in ``conf/config.yaml``) hands the launcher
+:func:`batch_jobs` of that list instead: jobs that differ only in ``seed`` become one job
+``seed=<first> train.population=<K>`` per run of consecutive seeds, at most
+``hydra.sweeper.max_population`` seeds each.  A population trains every member exactly as
+the single run of its seed (:mod:`cdqn.training.population`), so only the wall time
+changes.  Jobs stay as they are where the configuration cannot batch (:func:`batchable`),
+where it already sets ``train.population`` or ``resume``, and where a seed is not an
+integer or appears twice.  The jobs are launched Double DQN first, then by number of
+seeds (:func:`launch_order`): the longest jobs start first, so that parallel workers end
+together.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
+
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+from cdqn.config import Config
+
+SEED_KEY = "seed"
+POPULATION_KEY = "train.population"
+
+
+class JobShape(NamedTuple):
+    """What the sweeper needs to know of one job's configuration."""
+
+    batchable: bool
+    """Its seeds may train as one population."""
+    controller: str
+    """``controller.name`` (``?`` when the configuration does not compose)."""
+
+
+def batchable(conf: Config) -> bool:
+    """Whether the members train as one batch: :class:`ControlledPopulation` (its
+    controllers are the runtime controllers
+    :class:`cdqn.training.population_step.ControllerArrays` knows) or :class:`DDQNPopulation`,
+    both on the fast path, with one design for all members (a measured NTK box builds each
+    seed's design on its own network, :mod:`cdqn.ntk_bounds`)."""
+    ctrl = conf.controller
+    measured = (
+        ctrl.synthesis.ntk_bounds == "measured"
+        and ctrl.design == "synthesize"
+        and ctrl.name in ("hinf", "hinf_f", "h2")
+    )
+    return conf.train.fast_path and not measured
+
+
+def job_shape(cfg: DictConfig) -> JobShape:
+    """:class:`JobShape` of a composed job configuration (its ``hydra`` node is ignored):
+    batchable when it trains one seed (``train.population=1``, no ``resume``) and, once its
+    environment is adopted (:func:`cdqn.envs.adopt_env_id`), :func:`batchable`."""
+    from cdqn.envs import adopt_env_id  # noqa: PLC0415 (gymnasium only when composing)
+
+    job = copy.deepcopy(cfg)
+    with open_dict(job):
+        job.pop("hydra", None)
+    try:
+        controller = str(job.controller.name)
+        if job.get("resume") or job.train.population != 1:
+            return JobShape(False, controller)
+        adopt_env_id(job)
+        conf: Config = OmegaConf.to_object(job)  # type: ignore[assignment]
+        return JobShape(batchable(conf), controller)
+    except Exception:  # the job does not compose: Hydra reports it when it validates the batch
+        return JobShape(False, "?")
+
+
+def _seed_of(job: Sequence[str]) -> tuple[tuple[str, ...], int | None]:
+    """The job's overrides without ``seed=…``, and its seed (None: absent or not an int)."""
+    rest, seed = [], None
+    for override in job:
+        key, _, value = override.partition("=")
+        if key == SEED_KEY:
+            seed = int(value) if value.lstrip("-").isdigit() else None
+        else:
+            rest.append(override)
+    return tuple(rest), seed
+
+
+def seed_runs(seeds: Sequence[int], max_population: int) -> list[tuple[int, int]]:
+    """``(first seed, count)`` of each population for ``seeds``: runs of consecutive seeds,
+    each split into ``ceil(n / max_population)`` parts of nearly equal size."""
+    out: list[tuple[int, int]] = []
+    ordered = sorted(seeds)
+    start = 0
+    for i in range(1, len(ordered) + 1):
+        if i < len(ordered) and ordered[i] == ordered[i - 1] + 1:
+            continue
+        n = i - start
+        parts = math.ceil(n / max_population)
+        first = ordered[start]
+        for p in range(parts):
+            size = n // parts + (1 if p < n % parts else 0)
+            out.append((first, size))
+            first += size
+        start = i
+    return out
+
+
+def _with_seed(job: Sequence[str], seed: int, population: int) -> list[str]:
+    """``job`` with ``seed=<seed>`` and, for more than one seed, ``train.population=<K>``."""
+    out = [f"{SEED_KEY}={seed}" if o.partition("=")[0] == SEED_KEY else o for o in job]
+    return [*out, f"{POPULATION_KEY}={population}"] if population > 1 else out
+
+
+def batch_jobs(
+    jobs: Sequence[Sequence[str]],
+    max_population: int,
+    shape: Callable[[list[str]], JobShape],
+) -> list[list[str]]:
+    """The jobs of a multirun (override lists) with those that differ only in ``seed``
+    grouped into populations (module docstring), in :func:`launch_order`.  ``shape`` tells
+    whether a job's configuration can batch; it is asked once per group."""
+    groups: dict[tuple[str, ...], list[tuple[Sequence[str], int | None]]] = {}
+    for job in jobs:
+        rest, seed = _seed_of(job)
+        groups.setdefault(rest, []).append((job, seed))
+    planned: list[tuple[list[str], int, str]] = []  # overrides, seeds, controller
+    for rest, members in groups.items():
+        seeds = [s for _, s in members]
+        first = list(members[0][0])
+        explicit = any(o.partition("=")[0] in (POPULATION_KEY, "resume") for o in rest)
+        kind = shape(first)
+        can = (
+            max_population > 1
+            and len(members) > 1
+            and None not in seeds
+            and len(set(seeds)) == len(seeds)
+            and not explicit
+            and kind.batchable
+        )
+        if not can:
+            planned += [(list(job), 1, kind.controller) for job, _ in members]
+            continue
+        for seed, count in seed_runs([s for s in seeds if s is not None], max_population):
+            planned.append((_with_seed(first, seed, count), count, kind.controller))
+    return launch_order(planned)
+
+
+def launch_order(planned: list[tuple[list[str], int, str]]) -> list[list[str]]:
+    """Double DQN's jobs first, then the jobs with more seeds, otherwise in sweep order.
+    A Double DQN member costs about ten controlled members (its minibatch step,
+    docs/speed.md), so its populations are the longest jobs; started first, they leave the
+    shorter jobs to fill the other workers."""
+    order = sorted(range(len(planned)), key=lambda i: (planned[i][2] != "ddqn", -planned[i][1]))
+    return [planned[i][0] for i in order]
