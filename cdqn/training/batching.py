@@ -22,7 +22,7 @@ import math
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
-from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf import DictConfig, open_dict
 
 from cdqn.config import Config
 
@@ -57,8 +57,8 @@ def batchable(conf: Config) -> bool:
 def job_shape(cfg: DictConfig) -> JobShape:
     """:class:`JobShape` of a composed job configuration (its ``hydra`` node is ignored):
     batchable when it trains one seed (``train.population=1``, no ``resume``) and, once its
-    environment is adopted (:func:`cdqn.envs.adopt_env_id`), :func:`batchable`."""
-    from cdqn.envs import adopt_env_id  # noqa: PLC0415 (gymnasium only when composing)
+    environment is adopted (:func:`cdqn.envs.adopt`), :func:`batchable`."""
+    from cdqn.envs import adopt  # noqa: PLC0415 (gymnasium only when composing)
 
     job = copy.deepcopy(cfg)
     with open_dict(job):
@@ -67,9 +67,7 @@ def job_shape(cfg: DictConfig) -> JobShape:
         controller = str(job.controller.name)
         if job.get("resume") or job.train.population != 1:
             return JobShape(False, controller)
-        adopt_env_id(job)
-        conf: Config = OmegaConf.to_object(job)  # type: ignore[assignment]
-        return JobShape(batchable(conf), controller)
+        return JobShape(batchable(adopt(job).conf), controller)
     except Exception:  # the job does not compose: Hydra reports it when it validates the batch
         return JobShape(False, "?")
 
