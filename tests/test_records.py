@@ -13,6 +13,7 @@ from mlflow.tracking import MlflowClient
 
 import cdqn.records as records
 from cdqn.records import (
+    EPISODE_METRICS,
     FFT_COLUMNS,
     SERIES_METRICS,
     STEP_COLUMNS,
@@ -22,6 +23,7 @@ from cdqn.records import (
     Tag,
     names,
 )
+from cdqn.training.loop import EpisodeStats
 from cdqn.training.run import run
 from tests.conftest import compose_config
 
@@ -108,6 +110,11 @@ def test_the_contract_is_a_lower_layer_with_unique_names() -> None:
         values = names(space)
         assert len(values) == len(set(values)), space
     assert set(STEP_COLUMNS) | set(FFT_COLUMNS) == set(names(Signal))
+
+
+def test_the_episode_metrics_are_what_the_training_loop_logs() -> None:
+    stats = EpisodeStats(0, 1.0, 1.0, 1, 0.1, 0.0, 2.0, 0.0, 0, 0.1, 0.2, 0.3)
+    assert tuple(stats.metrics()) == EPISODE_METRICS
 
 
 def _artifact_files(client: MlflowClient, run_id: str, path: str | None = None) -> list[str]:
