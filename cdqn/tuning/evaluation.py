@@ -14,16 +14,16 @@ import copy
 import itertools
 import json
 import logging
-import multiprocessing
 import os
+import subprocess
+import sys
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from omegaconf import DictConfig, read_write
+from omegaconf import DictConfig, OmegaConf, read_write
 
 from cdqn.records import Artifact, Metric
 from cdqn.tuning.objective import area, ma100, padded
@@ -68,31 +68,52 @@ def _processes(setting: int, seeds: int) -> int:
 
 
 def _train_split(cfg: DictConfig, processes: int) -> list[Any]:
-    """The population of ``cfg`` as ``processes`` populations of consecutive seeds, trained
-    in parallel processes; the members' results in seed order."""
+    """The population of ``cfg`` as ``processes`` populations of consecutive seeds, each
+    trained by its own ``python -m cdqn.tuning.evaluation <config> <result>`` process side by
+    side (new interpreters: a study may itself run in a launcher's worker process); the
+    members' results in seed order."""
+    from cdqn.training.result import RunResult  # noqa: PLC0415
     from cdqn.training.run import run_population  # noqa: PLC0415
 
     k = int(cfg.train.population)
     if processes == 1:
         return run_population(cfg, progress=False).members
     bounds = np.linspace(0, k, processes + 1).astype(int)
-    parts = []
-    for lo, hi in itertools.pairwise(bounds):
-        part = copy.deepcopy(cfg)
-        with read_write(part):
-            part.seed = int(cfg.seed) + int(lo)
-            part.train.population = int(hi - lo)
-        parts.append(part)
-    spawn = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(processes, mp_context=spawn) as pool:
-        results = list(pool.map(_train_part, parts))
-    return [m for r in results for m in r]
+    env = dict(os.environ)
+    root = str(Path(__file__).resolve().parents[2])
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
+    with tempfile.TemporaryDirectory() as tmp:
+        procs = []
+        for i, (lo, hi) in enumerate(itertools.pairwise(bounds)):
+            part = copy.deepcopy(cfg)
+            with read_write(part):
+                part.seed = int(cfg.seed) + int(lo)
+                part.train.population = int(hi - lo)
+            OmegaConf.save(part, Path(tmp) / f"part{i}.yaml", resolve=True)
+            args = [sys.executable, "-m", "cdqn.tuning.evaluation",
+                    str(Path(tmp) / f"part{i}.yaml"), str(Path(tmp) / f"part{i}.json")]  # fmt: skip
+            procs.append(subprocess.Popen(args, env=env))
+        codes = [p.wait() for p in procs]
+        if any(codes):
+            raise RuntimeError(f"an evaluation process failed (exit statuses {codes})")
+        out = []
+        for i in range(processes):
+            rows = json.loads((Path(tmp) / f"part{i}.json").read_text())
+            out += [RunResult(**row) for row in rows]
+    return out
 
 
-def _train_part(cfg: DictConfig) -> list[Any]:
+def _train_part(config: Path, result: Path) -> None:
+    """One part of :func:`_train_split`: train the population of ``config``, write its
+    members' results to ``result`` (JSON)."""
+    import dataclasses  # noqa: PLC0415
+
+    from cdqn.config import Config  # noqa: PLC0415
     from cdqn.training.run import run_population  # noqa: PLC0415
 
-    return run_population(cfg, progress=False).members
+    cfg = OmegaConf.merge(OmegaConf.structured(Config), OmegaConf.load(config))
+    members = run_population(cfg, progress=False).members  # type: ignore[arg-type]
+    result.write_text(json.dumps([dataclasses.asdict(m) for m in members]))
 
 
 def _seeds_tag(cfg: DictConfig) -> str:
@@ -220,3 +241,8 @@ def _figure(rows: list[dict[str, Any]], env: Any, out: Path) -> None:
     fig.tight_layout()
     fig.savefig(out, dpi=120)
     plt.close(fig)
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.WARNING)
+    _train_part(Path(sys.argv[1]), Path(sys.argv[2]))
