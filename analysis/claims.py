@@ -32,6 +32,8 @@ from scipy.stats import mannwhitneyu
 
 from analysis.runs import RunStore, param_value
 from analysis.style import controller_text, env_text
+from cdqn.records import Artifact, Metric, Tag
+from cdqn.records import Signal as S
 
 ALPHA = 0.05
 """Significance level of the one-sided tests."""
@@ -85,7 +87,7 @@ def greater(a: np.ndarray, b: np.ndarray) -> tuple[float, str]:
 def score_claim(scores: pd.DataFrame, env: str, winner: str, loser: str) -> Claim:
     """``winner``'s final scores above ``loser``'s on ``env`` (one-sided test)."""
     text = f"{controller_text(winner)} beats {controller_text(loser)} on {env_text(env)}"
-    a, b = _cell(scores, winner, env, "final_score"), _cell(scores, loser, env, "final_score")
+    a, b = (_cell(scores, c, env, Metric.FINAL_SCORE) for c in (winner, loser))
     if a.size < 2 or b.size < 2:
         return Claim(text, _seeds({winner: a, loser: b}), None)
     p, stat = greater(a, b)
@@ -103,7 +105,7 @@ def ordering_claim(scores: pd.DataFrame, env: str, order: tuple[str, ...]) -> Cl
     first (std of the final scores)."""
     names = ", then ".join(controller_text(c) for c in order)
     text = f"{env_text(env)}: fastest with least spread {names}"
-    finals = [_cell(scores, c, env, "final_score") for c in order]
+    finals = [_cell(scores, c, env, Metric.FINAL_SCORE) for c in order]
     if any(f.size < 2 for f in finals):
         return Claim(text, _seeds(dict(zip(order, finals, strict=True))), None)
     medians = [_solve_median(scores, c, env, "solve_episode") for c in order]
@@ -138,7 +140,7 @@ def interaction_claim(scores: pd.DataFrame, env: str, ctrl: str) -> Claim:
 
 def divergence_claim(runs: pd.DataFrame) -> Claim:
     """No run diverged: none of ``runs`` (every status) failed with ``diverged: ...``."""
-    reasons = runs.get("failure_reason", pd.Series(None, index=runs.index)).fillna("")
+    reasons = runs.get(Tag.FAILURE_REASON, pd.Series(None, index=runs.index)).fillna("")
     diverged = int(((runs["status"] == "FAILED") & reasons.str.startswith("diverged")).sum())
     return Claim(
         "No divergence over all runs", f"{diverged} of {len(runs)} runs diverged", diverged == 0
@@ -156,12 +158,12 @@ class QGap(NamedTuple):
 
 def q_gap(steps: pd.DataFrame, gamma: float, last: int = Q_EPISODES) -> QGap:
     """:class:`QGap` of one run's ``signals/steps.parquet`` rows."""
-    episodes = np.sort(steps["episode"].unique())[-last:]
+    episodes = np.sort(steps[S.EPISODE].unique())[-last:]
     q0, ret = [], []
-    for _, df in steps[steps["episode"].isin(episodes)].groupby("episode"):
-        df = df.sort_values("step")
-        rewards = df["reward"].to_numpy(dtype=float)
-        q0.append(float(df["q1"].iloc[0]))
+    for _, df in steps[steps[S.EPISODE].isin(episodes)].groupby(S.EPISODE):
+        df = df.sort_values(S.STEP)
+        rewards = df[S.REWARD].to_numpy(dtype=float)
+        q0.append(float(df[S.Q1].iloc[0]))
         ret.append(float(np.sum(rewards * gamma ** np.arange(rewards.size))))
     return QGap(float(np.mean(q0)), float(np.mean(ret)))
 
@@ -188,7 +190,7 @@ def q_value_claim(
         if table is not None and not table.empty:
             gaps.append(q_gap(table, agent_gamma(run)))
     if not gaps:
-        return Claim(text, "no signals/steps.parquet", None)
+        return Claim(text, f"no {Artifact.STEPS}", None)
     q0 = np.array([g.q0 for g in gaps])
     ret = np.array([g.ret for g in gaps])
     right = (q0 > ret) if above else (q0 < ret)

@@ -40,9 +40,11 @@ from analysis.style import (  # noqa: E402
     env_text,
     ordered,
 )
+from cdqn.records import Artifact, Metric  # noqa: E402
+from cdqn.records import Signal as S  # noqa: E402
 from cdqn.training.signals import ROUND_OFF, log_binned_max  # noqa: E402
 
-FIGURE_METRICS = ("return_ma100", "loss_mean")
+FIGURE_METRICS = (Metric.RETURN_MA100, Metric.LOSS_MEAN)
 """The episode metrics the figures read (the rest come from per-step artifacts)."""
 PAPER_THETA1 = (200.0, 500.0)
 """Paper Fig. NTK_range: 200 < Θ1 < 500."""
@@ -150,7 +152,7 @@ class FigureContext:
     def steps_of(self, run: pd.Series) -> pd.DataFrame:
         steps = self.store.steps(run["run_id"])
         if steps is None or steps.empty:
-            raise Skip(f"run {run['run_name']} has no signals/steps.parquet")
+            raise Skip(f"run {run['run_name']} has no {Artifact.STEPS}")
         return steps
 
     def run_title(self, run: pd.Series, what: str = "") -> str:
@@ -161,7 +163,7 @@ class FigureContext:
     def window_text(self, steps: pd.DataFrame) -> str:
         """``episodes 1-500 of 2000`` for the steps a window figure shows."""
         total = _param(self.selected, "train.episodes")
-        shown = steps["episode"].nunique()
+        shown = steps[S.EPISODE].nunique()
         return f"episodes 1-{shown}" + (f" of {total}" if total is not None else "")
 
 
@@ -172,14 +174,14 @@ def _param(run: pd.Series, name: str, default: Any = None) -> Any:
 
 def _mean_std(df: pd.DataFrame, column: str) -> pd.DataFrame:
     """Mean and std over runs per episode (population std, as the table)."""
-    grouped = df.groupby("episode")[column]
+    grouped = df.groupby(S.EPISODE)[column]
     return pd.DataFrame({"mean": grouped.mean(), "std": grouped.std(ddof=0).fillna(0.0)})
 
 
 def _episode_axis(steps: pd.DataFrame) -> np.ndarray:
     """Continuous episode coordinate (from 1): episode + fraction of the episode done."""
-    length = steps.groupby("episode")["step"].transform("max").to_numpy() + 1
-    return steps["episode"].to_numpy() + 1 + steps["step"].to_numpy() / length
+    length = steps.groupby(S.EPISODE)[S.STEP].transform("max").to_numpy() + 1
+    return steps[S.EPISODE].to_numpy() + 1 + steps[S.STEP].to_numpy() / length
 
 
 def _legend(ax: Axes) -> None:
@@ -209,17 +211,17 @@ def _trace(ax: Axes, x: np.ndarray, y: np.ndarray, **kw: Any) -> None:
 
 def _one_episode(ctx: FigureContext) -> tuple[pd.DataFrame, int]:
     steps = ctx.selected_steps
-    episodes = steps["episode"].unique()
+    episodes = steps[S.EPISODE].unique()
     want = ctx.selection.episode
     episode = int(episodes.max()) if want is None else want - 1
     if episode not in set(episodes.tolist()):
         raise Skip(f"run {ctx.selected['run_name']} has no episode {want}")
-    return steps[steps["episode"] == episode], episode + 1
+    return steps[steps[S.EPISODE] == episode], episode + 1
 
 
 def _window(ctx: FigureContext) -> pd.DataFrame:
     steps = ctx.selected_steps
-    return steps[steps["episode"] < ctx.selection.window]
+    return steps[steps[S.EPISODE] < ctx.selection.window]
 
 
 class ThetaBounds(NamedTuple):
@@ -263,7 +265,7 @@ def learning(ctx: FigureContext, env: str) -> Figure:
         df = eps[(eps["controller"] == ctrl) & (eps.get("settings", "") == setting)]
         if df.empty:
             continue
-        stats = _mean_std(df, "return_ma100")
+        stats = _mean_std(df, Metric.RETURN_MA100)
         x = stats.index.to_numpy() + 1
         n = df["run_id"].nunique()
         color = ctx.colors[ctrl]
@@ -306,7 +308,7 @@ def loss(ctx: FigureContext) -> Figure:
     df = eps[(eps["env"] == sel.env) & (eps["controller"] == sel.controller)]
     if df.empty:
         raise Skip(f"no {sel.env}/{sel.controller} run in the store")
-    stats = _mean_std(df, "loss_mean")
+    stats = _mean_std(df, Metric.LOSS_MEAN)
     x = stats.index.to_numpy() + 1
     color = ctx.colors[sel.controller]
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
@@ -330,11 +332,11 @@ def q_window(ctx: FigureContext) -> Figure:
     steps = _window(ctx)
     x = _episode_axis(steps)
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
-    _trace(ax, x, steps["q1"].to_numpy(), color="tab:blue", lw=0.6, label=r"$Q_1 = Q(s,a)$")
+    _trace(ax, x, steps[S.Q1].to_numpy(), color="tab:blue", lw=0.6, label=r"$Q_1 = Q(s,a)$")
     _trace(
         ax,
         x,
-        steps["q2"].to_numpy(),
+        steps[S.Q2].to_numpy(),
         color="tab:orange",
         lw=0.6,
         alpha=0.8,
@@ -351,8 +353,8 @@ def q_episode(ctx: FigureContext) -> Figure:
     """``<Env>_Q1``: Q1 and Q2 over one episode of the selected run."""
     steps, episode = _one_episode(ctx)
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
-    ax.plot(steps["step"], steps["q1"], color="tab:blue", lw=1.2, label=r"$Q_1$")
-    ax.plot(steps["step"], steps["q2"], color="tab:orange", lw=1.2, ls="--", label=r"$Q_2$")
+    ax.plot(steps[S.STEP], steps[S.Q1], color="tab:blue", lw=1.2, label=r"$Q_1$")
+    ax.plot(steps[S.STEP], steps[S.Q2], color="tab:orange", lw=1.2, ls="--", label=r"$Q_2$")
     ax.set_xlabel(r"step $k$ in the episode")
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_ylabel(r"$Q$ value")
@@ -368,7 +370,7 @@ def u_window(ctx: FigureContext) -> Figure:
     _trace(
         ax,
         _episode_axis(steps),
-        steps["u"].to_numpy(),
+        steps[S.U].to_numpy(),
         color=ctx.colors[ctx.selected["controller"]],
         lw=0.6,
     )
@@ -382,7 +384,7 @@ def u_episode(ctx: FigureContext) -> Figure:
     """``<Env>_controlinput1``: u(t) over one episode of the selected run."""
     steps, episode = _one_episode(ctx)
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
-    ax.plot(steps["step"], steps["u"], color=ctx.colors[ctx.selected["controller"]], lw=1.2)
+    ax.plot(steps[S.STEP], steps[S.U], color=ctx.colors[ctx.selected["controller"]], lw=1.2)
     ax.set_xlabel(r"step $k$ in the episode")
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_ylabel(r"control input $u$")
@@ -399,7 +401,7 @@ def theta_training(ctx: FigureContext) -> Figure:
     _trace(
         ax,
         _episode_axis(steps),
-        steps["theta1"].to_numpy(),
+        steps[S.THETA1].to_numpy(),
         color=ctx.colors[run["controller"]],
         lw=0.6,
         label=r"$\Theta_1$",
@@ -408,7 +410,7 @@ def theta_training(ctx: FigureContext) -> Figure:
         ax.axhline(
             value, **BOUND_STYLE, label=f"design bounds ({bounds.source})" if i == 0 else None
         )
-    inside = np.mean((steps["theta1"] > bounds.theta1[0]) & (steps["theta1"] < bounds.theta1[1]))
+    inside = np.mean((steps[S.THETA1] > bounds.theta1[0]) & (steps[S.THETA1] < bounds.theta1[1]))
     ax.set_xlabel("episode")
     ax.set_ylabel(r"$\Theta_1 = \Theta((s,a),(s,a))$")
     ax.set_title(ctx.run_title(run, f"{100 * inside:.0f}% of steps inside"))
@@ -424,7 +426,7 @@ def ntk_range(ctx: FigureContext) -> Figure:
     except Skip:
         run = ctx.selected
     steps = ctx.steps_of(run)
-    pts = steps[["theta1", "theta2"]].dropna()
+    pts = steps[[S.THETA1, S.THETA2]].dropna()
     if pts.empty:
         raise Skip(f"run {run['run_name']} recorded no NTK values")
     if len(pts) > MAX_SCATTER_POINTS:
@@ -433,8 +435,8 @@ def ntk_range(ctx: FigureContext) -> Figure:
     (lo, hi), (r_lo, r_hi) = bounds.theta1, bounds.ratio
     fig, ax = plt.subplots(figsize=(5.6, 4.6))
     ax.scatter(
-        pts["theta1"],
-        pts["theta2"],
+        pts[S.THETA1],
+        pts[S.THETA2],
         s=3,
         alpha=0.35,
         lw=0,
@@ -467,9 +469,9 @@ def fft(ctx: FigureContext) -> Figure:
     run = ctx.selected
     spectra = ctx.store.fft(run["run_id"])
     if spectra is None or len(spectra) < 3:
-        raise Skip(f"run {run['run_name']} has no signals/fft.parquet")
+        raise Skip(f"run {run['run_name']} has no {Artifact.FFT}")
     fig, axes = plt.subplots(1, 3, figsize=(11.0, 3.6), sharex=True)
-    omega = 2 * np.pi * spectra["freq"].to_numpy()
+    omega = 2 * np.pi * spectra[S.FREQ].to_numpy()
     for ax, col, sym in zip(axes, ("reward", "q1", "q2"), ("r", "Q_1", "Q_2"), strict=True):
         amp = spectra[col].to_numpy()
         w, peaks = log_binned_max(omega, amp, FFT_BINS)

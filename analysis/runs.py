@@ -37,6 +37,7 @@ from mlflow.exceptions import MlflowException  # noqa: E402
 from mlflow.store.db.db_types import DATABASE_ENGINES  # noqa: E402
 from mlflow.tracking import MlflowClient  # noqa: E402
 
+from cdqn import records  # noqa: E402
 from cdqn.config import (  # noqa: E402
     TARGET_CONTROLLERS,
     TARGET_FIELDS,
@@ -48,22 +49,12 @@ DEFAULT_URI = TrackingConfig.uri
 """The training default (``sqlite:///mlflow.db`` in the working folder)."""
 DEFAULT_EXPERIMENT = TrackingConfig.experiment
 
-EPISODE_METRICS = (
-    "episode_return",
-    "return_ma100",
-    "episode_length",
-    "loss_mean",
-    "u_abs_mean",
-    "theta1_mean",
-    "unstable_fraction",
-    "theta1_outside_box",
-    "ratio_below_box",
-    "ratio_above_box",
-)
+EPISODE_METRICS = tuple(m for m in records.EPISODE_METRICS if m != records.Metric.REPLAY_UPDATES)
 """Per-episode metrics a cdqn run logs (MLflow ``step`` = episode index, from 0);
 the ``*_box`` shares only the agents with an NTK box (NaN for the others)."""
 
-TAG_COLUMNS = ("env", "env_id", "controller", "seed", "git_commit", "design_source")
+T = records.Tag
+TAG_COLUMNS = (T.ENV, T.ENV_ID, T.CONTROLLER, T.SEED, T.GIT_COMMIT, T.DESIGN_SOURCE)
 """Tags every cdqn run carries; they become columns of :meth:`RunStore.runs`."""
 
 RUN_KEY = ("run_id", "env", "controller", "seed", "settings")
@@ -197,7 +188,7 @@ class RunStore:
                     "artifact_uri": run.info.artifact_uri,
                 }
                 tags = run.data.tags
-                for tag in (*TAG_COLUMNS, "failure_reason"):
+                for tag in (*TAG_COLUMNS, T.FAILURE_REASON):
                     row[tag] = tags.get(tag)
                 row.update({f"params.{k}": v for k, v in run.data.params.items()})
                 rows.append(row)
@@ -367,7 +358,7 @@ class RunStore:
 
         Columns ``episode, step, reward, q1, q2, u, x_e, theta1, theta2, loss``.
         """
-        path = self.artifact_path(run_id, "signals/steps.parquet")
+        path = self.artifact_path(run_id, records.Artifact.STEPS)
         return None if path is None else pd.read_parquet(path)
 
     def fft(self, run_id: str) -> pd.DataFrame | None:
@@ -375,17 +366,17 @@ class RunStore:
 
         ``freq`` is in cycles per unit of learning time (one training step is Δt = α).
         """
-        path = self.artifact_path(run_id, "signals/fft.parquet")
+        path = self.artifact_path(run_id, records.Artifact.FFT)
         return None if path is None else pd.read_parquet(path)
 
     def design(self, run_id: str) -> dict[str, Any] | None:
         """``design/controller.json``, the controller the run used (or ``None``)."""
-        path = self.artifact_path(run_id, "design/controller.json")
+        path = self.artifact_path(run_id, records.Artifact.DESIGN_RECORD)
         return None if path is None else json.loads(path.read_text())
 
     def closed_loop_sv(self, run_id: str) -> pd.DataFrame | None:
         """``design/closed_loop_sv.csv``: ``omega, sigma_max, sigma_min`` (or ``None``)."""
-        path = self.artifact_path(run_id, "design/closed_loop_sv.csv")
+        path = self.artifact_path(run_id, records.Artifact.DESIGN + "closed_loop_sv.csv")
         return None if path is None else pd.read_csv(path)
 
 
@@ -517,7 +508,7 @@ def _empty_runs() -> pd.DataFrame:
         "start_time",
         "artifact_uri",
         *TAG_COLUMNS,
-        "failure_reason",
+        T.FAILURE_REASON,
         "solve_threshold",
     ]
     return pd.DataFrame(columns=cols)

@@ -31,12 +31,13 @@ from analysis.style import (
     env_text,
     ordered,
 )
+from cdqn.records import Metric
 
 LAST_EPISODES = 100
 """Episodes averaged for a run's final score (paper: "final scores after 2000 episodes")."""
 STD_DDOF = 0
 """Delta degrees of freedom of the std over seeds (NumPy's default)."""
-TABLE_METRICS = ("episode_return", "return_ma100", "episode_length")
+TABLE_METRICS = (Metric.EPISODE_RETURN, Metric.RETURN_MA100, Metric.EPISODE_LENGTH)
 """The only metrics the table reads."""
 
 
@@ -70,8 +71,8 @@ def run_scores(
         df = df.sort_values("episode")
         env = str(df["env"].iloc[0])
         threshold = float(thresholds.get(env, info.at[run_id, "solve_threshold"]))
-        returns = df["episode_return"].to_numpy(dtype=float)
-        ma100 = df["return_ma100"].to_numpy(dtype=float)
+        returns = df[Metric.EPISODE_RETURN].to_numpy(dtype=float)
+        ma100 = df[Metric.RETURN_MA100].to_numpy(dtype=float)
         reached = (
             np.flatnonzero(ma100 >= threshold) if np.isfinite(threshold) else np.zeros(0, dtype=int)
         )
@@ -82,7 +83,7 @@ def run_scores(
                 "controller": df["controller"].iloc[0],
                 "seed": df["seed"].iloc[0],
                 "episodes": len(df),
-                "final_score": float(np.mean(returns[-last:])),
+                Metric.FINAL_SCORE: float(np.mean(returns[-last:])),
                 "auc": float(np.mean(ma100)),
                 "solve_threshold": threshold,
                 "solve_episode": (
@@ -97,7 +98,7 @@ def run_scores(
         "controller",
         "seed",
         "episodes",
-        "final_score",
+        Metric.FINAL_SCORE,
         "auc",
         "solve_threshold",
         "solve_episode",
@@ -133,8 +134,8 @@ def summarize(scores: pd.DataFrame) -> pd.DataFrame:
                 "controller": ctrl,
                 "env": env,
                 "n_seeds": len(df),
-                "mean": float(df["final_score"].mean()),
-                "std": float(np.std(df["final_score"].to_numpy(dtype=float), ddof=STD_DDOF)),
+                "mean": float(df[Metric.FINAL_SCORE].mean()),
+                "std": float(np.std(df[Metric.FINAL_SCORE].to_numpy(dtype=float), ddof=STD_DDOF)),
                 "auc_mean": float(df["auc"].mean()),
                 "auc_std": float(np.std(df["auc"].to_numpy(dtype=float), ddof=STD_DDOF)),
                 "min_episodes": int(df["episodes"].min()),

@@ -70,6 +70,7 @@ from cdqn.config import Config, ConfigError, register_configs  # noqa: E402
 from cdqn.control.factory import make_controller  # noqa: E402
 from cdqn.envs import adopt, env_presets, env_sizes, make_env  # noqa: E402
 from cdqn.network import NetworkSpec, QNetwork  # noqa: E402
+from cdqn.records import Signal, column  # noqa: E402
 from cdqn.training.build import build, build_population, member_config  # noqa: E402
 from cdqn.training.loop import DivergenceError, EpisodeStats, TrainState, train  # noqa: E402
 from cdqn.training.population import finish_member, start_member_run  # noqa: E402
@@ -421,14 +422,22 @@ def estimate_paper_sweep(
     }
 
 
+def synthetic_signals(rows: int) -> np.ndarray:
+    """``rows`` rows of the signal table (:data:`cdqn.records.STEP_COLUMNS`): episodes of 150
+    steps, normal noise in the other columns, Θ1 > 0 (so that Θ2/Θ1 is defined)."""
+    table = np.random.default_rng(0).normal(size=(rows, len(COLUMNS)))
+    table[:, column(Signal.EPISODE)] = np.arange(rows) // 150
+    table[:, column(Signal.STEP)] = np.arange(rows) % 150
+    table[:, column(Signal.THETA1)] = np.abs(table[:, column(Signal.THETA1)]) * 300.0
+    return table
+
+
 def signal_write_seconds_per_step(uri: str, rows: int = 100_000) -> float:
     """Wall-clock seconds per step of writing a run's per-step signals at its end
     (``signals/steps.parquet`` and ``signals/fft.parquet``), from ``rows`` synthetic rows."""
     recorder = Recorder.start(uri, "bench", "bench-signals", {}, {})
     signals = SignalBuffer()
-    table = np.random.default_rng(0).normal(size=(rows, 10))
-    table[:, 0], table[:, 1] = np.arange(rows) // 150, np.arange(rows) % 150
-    signals.extend(table)
+    signals.extend(synthetic_signals(rows))
     t0 = time.perf_counter()
     recorder.log_signals(signals, 5e-5)
     seconds = time.perf_counter() - t0
@@ -440,9 +449,7 @@ def signal_series_cost(uri: str, rows: int = 300_000, repeats: int = 3) -> dict[
     """Wall-clock and CPU seconds of turning a run's ``rows`` per-step signals and spectra
     into metric series and writing them in one batch (:meth:`Recorder.log_series`), medians
     of ``repeats`` runs; 300,000 rows are a 2000-episode CartPole run at 150 steps."""
-    table = np.random.default_rng(0).normal(size=(rows, 10))
-    table[:, 0], table[:, 1] = np.arange(rows) // 150, np.arange(rows) % 150
-    table[:, 7] = np.abs(table[:, 7]) * 300.0  # Θ1 > 0, so that Θ2/Θ1 is defined
+    table = synthetic_signals(rows)
     spectra = amplitude_spectra(pd.DataFrame(table, columns=list(COLUMNS)), 5e-5)
     box = ((200.0, 500.0), (0.8, 1.2))
     wall, cpu, points = [], [], 0

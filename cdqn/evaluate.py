@@ -46,6 +46,8 @@ from cdqn.config import (
 )
 from cdqn.envs import make_env
 from cdqn.network import FastTwoLayer, QNetwork, load_network
+from cdqn.records import Artifact, Tag, folder
+from cdqn.records import Metric as M
 from cdqn.training.tracking import CONFIG_ARTIFACT, TrackingError, check_tracking
 
 log = logging.getLogger("cdqn")
@@ -116,7 +118,7 @@ def evaluate(cfg: EvaluateConfig) -> EvalResult:
         )
     with tempfile.TemporaryDirectory() as tmp:
         try:
-            model_dir = client.download_artifacts(cfg.run_id, "model", tmp)
+            model_dir = client.download_artifacts(cfg.run_id, folder(Artifact.MODEL), tmp)
             net = load_network(Path(model_dir))
         except Exception as err:
             raise ConfigError(
@@ -164,16 +166,16 @@ def _log(client: MlflowClient, result: EvalResult, params: dict[str, str]) -> No
     step = int(params.get("train.episodes", "0"))
     ts = int(time.time() * 1000)
     values = {
-        "eval_return_mean": result.mean,
-        "eval_return_std": result.std,
-        "eval_return_min": float(result.returns.min()),
-        "eval_return_max": float(result.returns.max()),
-        "eval_episodes": float(len(result.returns)),
+        M.EVAL_RETURN_MEAN: result.mean,
+        M.EVAL_RETURN_STD: result.std,
+        M.EVAL_RETURN_MIN: float(result.returns.min()),
+        M.EVAL_RETURN_MAX: float(result.returns.max()),
+        M.EVAL_EPISODES: float(len(result.returns)),
     }
     client.log_batch(
         result.run_id,
         metrics=[Metric(k, v, ts, step) for k, v in values.items()],
-        tags=[RunTag("eval_seed", str(result.seed))],
+        tags=[RunTag(Tag.EVAL_SEED, str(result.seed))],
     )
     n = len(result.returns)
     frame = pd.DataFrame(
@@ -186,7 +188,7 @@ def _log(client: MlflowClient, result: EvalResult, params: dict[str, str]) -> No
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / f"returns-seed{result.seed}-n{n}.csv"
         frame.to_csv(path, index=False)
-        client.log_artifact(result.run_id, str(path), "evaluation")
+        client.log_artifact(result.run_id, str(path), folder(Artifact.EVALUATION))
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")

@@ -29,6 +29,7 @@ import torch
 from mlflow.tracking import MlflowClient
 
 from cdqn.agents.base import Agent
+from cdqn.records import Artifact, folder
 from cdqn.training.loop import TrainState
 from cdqn.training.signals import COLUMNS, SignalBuffer
 from cdqn.training.tracking import retrying
@@ -36,7 +37,7 @@ from cdqn.training.tracking import retrying
 log = logging.getLogger("cdqn")
 
 FORMAT = 1
-ROOT = "checkpoint"
+ROOT = folder(Artifact.CHECKPOINT)
 SLOTS = ("a", "b")
 _CHUNK = re.compile(r"rows-(\d+)-(\d+)\.npy$")
 

@@ -20,6 +20,7 @@ from cdqn.agents.base import Agent, StepRecord
 from cdqn.agents.episodic_replay import EpisodeTail, qualifies
 from cdqn.config import ReplayConfig
 from cdqn.control.box import Box
+from cdqn.records import Signal, column
 from cdqn.training.signals import SignalBuffer
 
 RATE_WINDOW = 20
@@ -32,6 +33,10 @@ class DivergenceError(RuntimeError):
     def __init__(self, reason: str, episode: int, step: int) -> None:
         super().__init__(f"{reason} (episode {episode}, step {step})")
         self.reason, self.episode, self.step = reason, episode, step
+
+
+_LOSS, _U, _THETA1, _THETA2 = map(column, (Signal.LOSS, Signal.U, Signal.THETA1, Signal.THETA2))
+"""Indices of the signal columns the episode summaries read (compile-time constants)."""
 
 
 @dataclass
@@ -108,12 +113,12 @@ def _episode_means(rows, discount):  # noqa: ANN001, ANN202
     loss = u = theta1 = 0.0
     n_loss = unstable = 0
     for r in range(rows.shape[0]):
-        if math.isfinite(rows[r, 9]):
-            loss += rows[r, 9]
+        if math.isfinite(rows[r, _LOSS]):
+            loss += rows[r, _LOSS]
             n_loss += 1
-        u += abs(rows[r, 5])
-        theta1 += rows[r, 7]
-        if rows[r, 7] < discount * rows[r, 8]:
+        u += abs(rows[r, _U])
+        theta1 += rows[r, _THETA1]
+        if rows[r, _THETA1] < discount * rows[r, _THETA2]:
             unstable += 1
     n = rows.shape[0]
     return loss / n_loss if n_loss else math.nan, u / n, theta1 / n, unstable / n
@@ -132,7 +137,7 @@ def _outside_shares(rows, theta1_lo, theta1_hi, ratio_lo, ratio_hi):  # noqa: AN
     the side that bound limits."""
     theta1_out = below = above = 0
     for r in range(rows.shape[0]):
-        t1, t2 = rows[r, 7], rows[r, 8]
+        t1, t2 = rows[r, _THETA1], rows[r, _THETA2]
         if not theta1_lo <= t1 <= theta1_hi:
             theta1_out += 1
         if t2 < ratio_lo * t1:

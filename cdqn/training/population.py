@@ -56,6 +56,7 @@ from cdqn.control.box import Box
 from cdqn.control.factory import make_controller
 from cdqn.control.setup import ControllerSetup
 from cdqn.network import QNetwork, save_network
+from cdqn.records import Artifact, Tag, folder
 from cdqn.training.build import build_population, member_config, member_seeds
 from cdqn.training.checkpoint import ROOT as CHECKPOINT_ROOT
 from cdqn.training.checkpoint import CheckpointStore, load_local, local_path, save_local
@@ -385,14 +386,14 @@ def _resume_killed(
     groups: dict[str, list] = {}
     for m in members:
         found = find_resumable(client, str(cfg.tracking.experiment), config_hash(m.cfg))
-        if found is not None and "population_id" in found.data.tags:
-            groups.setdefault(found.data.tags["population_id"], []).append(found)
+        if found is not None and Tag.POPULATION_ID in found.data.tags:
+            groups.setdefault(found.data.tags[Tag.POPULATION_ID], []).append(found)
     for runs in groups.values():
         ids = ", ".join(r.info.run_id for r in runs)
         log.info("continuing KILLED population members from their checkpoints: %s", ids)
         out = resume_population(uri, cfg.tracking, runs, progress)
         for r in out.members:
-            seed = int(client.get_run(r.run_id).data.tags["seed"])
+            seed = int(client.get_run(r.run_id).data.tags[Tag.SEED])
             results[seed] = r
         if out.signum is not None:
             return out.signum
@@ -420,7 +421,7 @@ def resume_population(uri: str, tracking: Any, runs: list, progress: bool) -> Po
         if closed is None:
             open_runs.append(r)
         else:
-            results[int(r.data.tags.get("seed", "0"))] = closed
+            results[int(r.data.tags.get(Tag.SEED, "0"))] = closed
     runs = open_runs
     if not runs:
         _forget_local(folder, [], results)
@@ -478,19 +479,19 @@ def resume_population(uri: str, tracking: Any, runs: list, progress: bool) -> Po
         for j, (m, r) in enumerate(zip(members, runs, strict=True)):
             if chosen:
                 restore_member(chosen[m.seed], m, agent, venv, j)
-            reason = r.data.tags.get("failure_reason", "")
+            reason = r.data.tags.get(Tag.FAILURE_REASON, "")
             if r.info.status == "RUNNING":
                 log.warning("run %s is marked RUNNING (its process ended without closing it); "
                             "continuing it", r.info.run_id)  # fmt: skip
             m.recorder = Recorder.attach(uri, r.info.run_id)
             tags = {
-                "resumed_from_episode": str(m.episode),
-                "resume_count": str(int(r.data.tags.get("resume_count", "0")) + 1),
+                Tag.RESUMED_FROM_EPISODE: str(m.episode),
+                Tag.RESUME_COUNT: str(int(r.data.tags.get(Tag.RESUME_COUNT, "0")) + 1),
                 **process_tags(),
             }
             if reason:
-                tags["previous_failure_reason"] = reason
-                client.delete_tag(r.info.run_id, "failure_reason")
+                tags[Tag.PREVIOUS_FAILURE_REASON] = reason
+                client.delete_tag(r.info.run_id, Tag.FAILURE_REASON)
             m.recorder.set_tags(tags)
             m.logged = m.recorder.logged_episodes()
             m.recorder.add_pending(pending.get(m.seed, []))  # what the store did not take
@@ -547,8 +548,8 @@ def close_from_local(uri: str, client: MlflowClient, run: Any, tracking: Any) ->
     m.recorder = Recorder.attach(uri, run_id)
     m.recorder.set_tags(
         {
-            "resumed_from_episode": str(len(m.returns)),
-            "resume_count": str(int(run.data.tags.get("resume_count", "0")) + 1),
+            Tag.RESUMED_FROM_EPISODE: str(len(m.returns)),
+            Tag.RESUME_COUNT: str(int(run.data.tags.get(Tag.RESUME_COUNT, "0")) + 1),
             **process_tags(),
         }
     )
@@ -573,15 +574,15 @@ def start_member_run(
     tag ``population_id`` names the population (what ``resume=`` finds its members by)."""
     container = OmegaConf.to_container(m.cfg, resolve=True)
     tags = {
-        "env": conf.env.name,
-        "env_id": conf.env.id,
-        "controller": conf.controller.name,
-        "seed": str(m.seed),
-        "git_commit": git_commit(),
-        "design_source": setup.source,
-        "config_hash": config_hash(m.cfg),
-        "population": population,
-        "population_id": population_id or uuid.uuid4().hex,
+        Tag.ENV: conf.env.name,
+        Tag.ENV_ID: conf.env.id,
+        Tag.CONTROLLER: conf.controller.name,
+        Tag.SEED: str(m.seed),
+        Tag.GIT_COMMIT: git_commit(),
+        Tag.DESIGN_SOURCE: setup.source,
+        Tag.CONFIG_HASH: config_hash(m.cfg),
+        Tag.POPULATION: population,
+        Tag.POPULATION_ID: population_id or uuid.uuid4().hex,
         **process_tags(),
         **setup.tags(),
     }
@@ -594,9 +595,9 @@ def start_member_run(
         config=container,  # type: ignore[arg-type]
     )
     if setup.design:
-        rec.log_dict(setup.design, "design/controller.json")
+        rec.log_dict(setup.design, Artifact.DESIGN_RECORD)
     if setup.artifacts is not None:
-        rec.log_dir(setup.artifacts, "design")
+        rec.log_dir(setup.artifacts, folder(Artifact.DESIGN))
     log.debug(
         "MLflow run %s (%s, %s, seed %d)", rec.run_id, conf.env.name, conf.controller.name, m.seed
     )
@@ -623,9 +624,9 @@ def finish_member(
         if conf.tracking.log_model and net is not None:
             with tempfile.TemporaryDirectory() as tmp:
                 save_network(net, Path(tmp))
-                rec.log_dir(Path(tmp), "model")
+                rec.log_dir(Path(tmp), folder(Artifact.MODEL))
         elif conf.tracking.log_model and model is not None:
-            rec.log_dir(model, "model")
+            rec.log_dir(model, folder(Artifact.MODEL))
         if m.status == "FINISHED" and not conf.train.keep_checkpoints:
             rec.delete_artifacts(CHECKPOINT_ROOT)  # nothing left to resume
     except TrackingOutage:

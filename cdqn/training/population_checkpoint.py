@@ -52,6 +52,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from cdqn.config import Config, ConfigError
+from cdqn.records import Tag
 from cdqn.training.signals import COLUMNS
 from cdqn.training.tracking import CONFIG_ARTIFACT
 
@@ -202,9 +203,9 @@ def stored_config(client: MlflowClient, run_id: str, tracking: Any) -> DictConfi
 def population_runs(client: MlflowClient, run: Run) -> list[Run]:
     """The runs of ``run``'s population (tag ``population_id``) that can be continued:
     KILLED, RUNNING, or FAILED for a reason other than divergence; by seed."""
-    pid = run.data.tags["population_id"]
+    pid = run.data.tags[Tag.POPULATION_ID]
     found = client.search_runs(
-        [run.info.experiment_id], filter_string=f"tags.population_id = '{pid}'"
+        [run.info.experiment_id], filter_string=f"tags.{Tag.POPULATION_ID} = '{pid}'"
     )
     keep = [
         r
@@ -212,7 +213,7 @@ def population_runs(client: MlflowClient, run: Run) -> list[Run]:
         if r.info.status in ("KILLED", "RUNNING")
         or (
             r.info.status == "FAILED"
-            and not r.data.tags.get("failure_reason", "").startswith("diverged")
+            and not r.data.tags.get(Tag.FAILURE_REASON, "").startswith("diverged")
         )
     ]
-    return sorted(keep, key=lambda r: int(r.data.tags.get("seed", "0")))
+    return sorted(keep, key=lambda r: int(r.data.tags.get(Tag.SEED, "0")))

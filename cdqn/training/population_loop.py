@@ -43,6 +43,7 @@ from cdqn.agents.base import StepRecord
 from cdqn.agents.episodic_replay import PopulationTail, Transitions, qualifies
 from cdqn.config import ReplayConfig
 from cdqn.control.box import Box
+from cdqn.records import column
 from cdqn.training.loop import DivergenceError, _diagnose, episode_stats
 from cdqn.training.population_step import CHECK, DONE, ControlledPopulation
 from cdqn.training.signals import COLUMNS, SignalBuffer
@@ -50,6 +51,9 @@ from cdqn.vector_env import VectorEnv
 
 if TYPE_CHECKING:  # a member's recorder is opened by the population's runs, not by the loop
     from cdqn.training.tracking import Recorder
+
+_RECORD = tuple(column(c) for c in StepRecord._fields)
+"""Indices of a :class:`StepRecord`'s fields among the signal columns."""
 
 
 @dataclass
@@ -270,7 +274,7 @@ def train_population(
                 flags = agent.flags
                 for j in np.flatnonzero(flags == CHECK):  # the trainer's exact test
                     row = rows[j].tolist()
-                    r = StepRecord(row[9], *row[3:9])
+                    r = StepRecord(*(row[i] for i in _RECORD))
                     if (
                         abs(r.q1) <= q_limit
                         and abs(r.q2) <= q_limit

@@ -20,6 +20,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
 from cdqn.config import ConfigError, resolve_tracking_uri
 from cdqn.envs import Adopted, adopt, make_env
+from cdqn.records import Tag
 from cdqn.training.batching import batchable
 from cdqn.training.build import member_config, member_seeds
 from cdqn.training.population import resume_population, start_population
@@ -125,7 +126,7 @@ def resume(cfg: DictConfig, progress: bool = True) -> RunResult:
         info = client.get_run(run_id)
     except MlflowException:
         raise TrackingError(f"resume={run_id}: no such run in tracking.uri={uri!r}") from None
-    status, reason = info.info.status, info.data.tags.get("failure_reason", "")
+    status, reason = info.info.status, info.data.tags.get(Tag.FAILURE_REASON, "")
     if status == "FINISHED":
         raise ConfigError(f"resume={run_id}: the run FINISHED; there is nothing to continue")
     if status == "FAILED" and reason.startswith("diverged"):
@@ -133,7 +134,7 @@ def resume(cfg: DictConfig, progress: bool = True) -> RunResult:
             f"resume={run_id}: the run FAILED because it {reason}; with the same seed it would "
             "diverge again (start a new run with other settings)"
         )
-    if "population_id" in info.data.tags:  # a member: continue its whole population
+    if Tag.POPULATION_ID in info.data.tags:  # a member: continue its whole population
         runs = population_runs(client, info)
         return resume_population(uri, cfg.tracking, runs, progress).summary()
     return resume_run(cfg, client, info, uri, progress)

@@ -1,11 +1,13 @@
 """Per-step signals of a run, buffered in NumPy, and their spectra.
 
-Columns (one row per environment step): ``episode, step, reward, q1, q2, u, x_e, theta1,
-theta2, loss`` with ``q1 = Q(s, a)`` and ``q2 = max Q(s', ·)`` before the update.
+Columns (one row per environment step, :data:`cdqn.records.STEP_COLUMNS`): ``episode, step,
+reward, q1, q2, u, x_e, theta1, theta2, loss`` with ``q1 = Q(s, a)`` and ``q2 = max Q(s', ·)``
+before the update.
 """
 
 from __future__ import annotations
 
+from operator import attrgetter
 from typing import NamedTuple
 
 import numpy as np
@@ -13,9 +15,13 @@ import pandas as pd
 
 from cdqn.agents.base import StepRecord
 from cdqn.control.box import Box
+from cdqn.records import BOX_SERIES, SERIES, SERIES_PREFIX, SPECTRA, SPECTRUM_PREFIX, column
+from cdqn.records import FFT_COLUMNS as FFT_COLUMNS
+from cdqn.records import STEP_COLUMNS as COLUMNS
+from cdqn.records import Signal as S
 
-COLUMNS = ("episode", "step", "reward", "q1", "q2", "u", "x_e", "theta1", "theta2", "loss")
-FFT_COLUMNS = ("freq", "reward", "q1", "q2")
+_RECORD_COLUMNS = attrgetter(*COLUMNS[3:])
+"""The signal columns after ``episode, step, reward`` from a :class:`StepRecord`, by name."""
 ROUND_OFF = 1e-12
 """Relative amplitude below which a spectrum's content is floating-point round-off."""
 
@@ -30,7 +36,7 @@ class SignalBuffer:
     def append(self, episode: int, step: int, reward: float, rec: StepRecord) -> None:
         if self.n == len(self.data):
             self.data = np.concatenate([self.data, np.empty_like(self.data)])
-        self.data[self.n] = (episode, step, reward, *rec[1:8], rec[0])
+        self.data[self.n] = (episode, step, reward, *_RECORD_COLUMNS(rec))
         self.n += 1
 
     def extend(self, rows: np.ndarray) -> None:
@@ -51,7 +57,7 @@ class SignalBuffer:
 
     def to_frame(self) -> pd.DataFrame:
         df = pd.DataFrame(self.data[: self.n], columns=list(COLUMNS))
-        return df.astype({"episode": np.int64, "step": np.int64})
+        return df.astype({S.EPISODE: np.int64, S.STEP: np.int64})
 
     def state(self) -> np.ndarray:
         return self.data[: self.n].copy()
@@ -74,8 +80,8 @@ def amplitude_spectra(steps: pd.DataFrame, dt: float) -> pd.DataFrame:
     n = len(steps)
     if n == 0:
         return pd.DataFrame({c: np.zeros(0) for c in FFT_COLUMNS})
-    out = {"freq": np.fft.rfftfreq(n, d=dt)}
-    for col in FFT_COLUMNS[1:]:
+    out = {S.FREQ: np.fft.rfftfreq(n, d=dt)}
+    for col in SPECTRA:
         x = np.nan_to_num(steps[col].to_numpy(dtype=float))
         amp = np.abs(np.fft.rfft(x)) / n
         amp[1:] *= 2.0
@@ -90,10 +96,6 @@ episodes of a 2000-episode run): with :data:`SPECTRUM_POINTS`, few enough points
 writing them stays under 50 ms per run (``python -m cdqn.bench``)."""
 SPECTRUM_POINTS = 30
 """Log-spaced frequency bins of each amplitude spectrum logged as an MLflow metric."""
-SERIES_PREFIX = "signals/"
-"""Metric keys of the per-step series (MLflow groups charts by this prefix)."""
-SPECTRUM_PREFIX = "spectrum/"
-"""Metric keys of the amplitude spectra."""
 SPECTRUM_STEP_SCALE = 1000.0
 """A spectrum point's metric step is ``round(1000 ω)``: ω in rad per unit of learning time
 (``t = kα``, as the FFT figure's axis) times 1000, so that MLflow's integer steps keep it."""
@@ -135,10 +137,6 @@ def log_binned_max(freq: np.ndarray, amp: np.ndarray, bins: int) -> tuple[np.nda
     return np.add.reduceat(freq, starts) / counts, np.maximum.reduceat(amp, starts)
 
 
-SERIES = ("u", "q1", "q2", "theta1", "theta2_over_theta1")
-"""The per-step series logged as ``signals/<name>``."""
-
-
 def signal_series(
     data: np.ndarray, spectra: pd.DataFrame | None, box: Box | None
 ) -> list[SeriesPoint]:
@@ -157,7 +155,7 @@ def signal_series(
     """
     if len(data) == 0:
         return []
-    idx = [COLUMNS.index(c) for c in ("u", "q1", "q2", "theta1", "theta2")]
+    idx = [column(c) for c in (S.U, S.Q1, S.Q2, S.THETA1, S.THETA2)]
     steps, means = bucket_means(data[:, idx], SERIES_POINTS)
     means[:, 4] = np.where(
         means[:, 3] > 0, means[:, 4] / np.where(means[:, 3] > 0, means[:, 3], 1), np.nan
@@ -169,13 +167,12 @@ def signal_series(
                 for s, v in zip(steps, means[:, j], strict=True) if np.isfinite(v)]  # fmt: skip
     ends = sorted({int(steps[0]), int(steps[-1])})
     if box is not None:
-        for name, (lo, hi) in (("theta1_box", box[0]), ("ratio_box", box[1])):
-            for step in ends:
-                out += [SeriesPoint(f"{SERIES_PREFIX}{name}_lower", float(lo), step),
-                        SeriesPoint(f"{SERIES_PREFIX}{name}_upper", float(hi), step)]  # fmt: skip
+        bounds = (*box[0], *box[1])  # BOX_SERIES: Θ1 lower, upper, Θ2/Θ1 lower, upper
+        out += [SeriesPoint(SERIES_PREFIX + name, float(v), step)
+                for name, v in zip(BOX_SERIES, bounds, strict=True) for step in ends]  # fmt: skip
     if spectra is not None and len(spectra) > 1:
-        omega = 2 * np.pi * spectra["freq"].to_numpy()
-        for name in FFT_COLUMNS[1:]:
+        omega = 2 * np.pi * spectra[S.FREQ].to_numpy()
+        for name in SPECTRA:
             w, peaks = log_binned_max(omega, spectra[name].to_numpy(), SPECTRUM_POINTS)
             steps = np.round(SPECTRUM_STEP_SCALE * w).astype(np.int64)
             out += [SeriesPoint(SPECTRUM_PREFIX + name, float(a), int(s))

@@ -28,6 +28,7 @@ from omegaconf import DictConfig, OmegaConf
 from cdqn.config import Config, validate
 from cdqn.envs import make_env
 from cdqn.network import save_network
+from cdqn.records import Artifact, Tag, folder
 from cdqn.training.build import Job, build
 from cdqn.training.checkpoint import ROOT as CHECKPOINT_ROOT
 from cdqn.training.checkpoint import (
@@ -68,13 +69,13 @@ def start_run(cfg: DictConfig, conf: Config, env: gym.Env, uri: str, progress: b
     container = OmegaConf.to_container(cfg, resolve=True)
     params = flatten(container)  # type: ignore[arg-type]
     tags = {
-        "env": conf.env.name,
-        "env_id": conf.env.id,
-        "controller": conf.controller.name,
-        "seed": str(conf.seed),
-        "git_commit": git_commit(),
-        "design_source": job.setup.source,
-        "config_hash": config_hash(cfg),
+        Tag.ENV: conf.env.name,
+        Tag.ENV_ID: conf.env.id,
+        Tag.CONTROLLER: conf.controller.name,
+        Tag.SEED: str(conf.seed),
+        Tag.GIT_COMMIT: git_commit(),
+        Tag.DESIGN_SOURCE: job.setup.source,
+        Tag.CONFIG_HASH: config_hash(cfg),
         **process_tags(),
         **job.setup.tags(),
     }
@@ -91,9 +92,9 @@ def start_run(cfg: DictConfig, conf: Config, env: gym.Env, uri: str, progress: b
         env.close()
         raise
     if job.setup.design:
-        recorder.log_dict(job.setup.design, "design/controller.json")
+        recorder.log_dict(job.setup.design, Artifact.DESIGN_RECORD)
     if job.setup.artifacts is not None:
-        recorder.log_dir(job.setup.artifacts, "design")
+        recorder.log_dir(job.setup.artifacts, folder(Artifact.DESIGN))
     log.info(
         "MLflow run %s (%s, %s, seed %d)",
         recorder.run_id,
@@ -116,7 +117,7 @@ def resume_run(
     (``tracking.*``).  Episodes whose metrics are already in the store are not logged twice.
     """
     run_id = info.info.run_id
-    status, reason = info.info.status, info.data.tags.get("failure_reason", "")
+    status, reason = info.info.status, info.data.tags.get(Tag.FAILURE_REASON, "")
     if status == "RUNNING":
         log.warning(
             "run %s is marked RUNNING (its process ended without closing it, e.g. SIGKILL); "
@@ -151,14 +152,14 @@ def resume_run(
     recorder = Recorder.attach(uri, run_id)
     recorder.set_tags(
         {
-            "resumed_from_episode": str(state.episode),
-            "resume_count": str(int(info.data.tags.get("resume_count", "0")) + 1),
+            Tag.RESUMED_FROM_EPISODE: str(state.episode),
+            Tag.RESUME_COUNT: str(int(info.data.tags.get(Tag.RESUME_COUNT, "0")) + 1),
             **process_tags(),
         }
     )
     if reason:
-        recorder.set_tags({"previous_failure_reason": reason})
-        client.delete_tag(run_id, "failure_reason")
+        recorder.set_tags({Tag.PREVIOUS_FAILURE_REASON: reason})
+        client.delete_tag(run_id, Tag.FAILURE_REASON)
     logged = recorder.logged_episodes()
     recorder.add_pending(pending)  # metrics the store did not take before it went away
     result = _train(job, recorder, store, state, signals, progress, logged)
@@ -294,7 +295,7 @@ def _close_run(
             if conf.tracking.log_model:
                 with tempfile.TemporaryDirectory() as tmp:
                     save_network(job.net, Path(tmp))
-                    recorder.log_dir(Path(tmp), "model")
+                    recorder.log_dir(Path(tmp), folder(Artifact.MODEL))
             if status == "FINISHED" and not conf.train.keep_checkpoints:
                 recorder.delete_artifacts(CHECKPOINT_ROOT)  # nothing left to resume
         except TrackingOutage:

@@ -30,6 +30,8 @@ from mlflow.tracking import MlflowClient
 
 from cdqn.config import EXPERIMENT_TAGS, ConfigError
 from cdqn.control.box import Box
+from cdqn.records import Artifact, Tag, folder
+from cdqn.records import Metric as M
 from cdqn.training.loop import EpisodeStats
 from cdqn.training.signals import SeriesPoint, SignalBuffer, amplitude_spectra, signal_series
 
@@ -37,7 +39,7 @@ log = logging.getLogger("cdqn")
 T = TypeVar("T")
 
 MAX_PARAM_LENGTH = 6000
-CONFIG_ARTIFACT = "config.yaml"
+CONFIG_ARTIFACT = Artifact.CONFIG
 """The run's resolved configuration (without the ``hydra`` section)."""
 
 
@@ -353,7 +355,7 @@ class Recorder:
 
     def logged_episodes(self) -> set[int]:
         """Episodes whose metrics are already in the store (a resumed run skips them)."""
-        return {m.step for m in self.client.get_metric_history(self.run_id, "episode_return")}
+        return {m.step for m in self.client.get_metric_history(self.run_id, M.EPISODE_RETURN)}
 
     def set_tags(self, tags: Mapping[str, str]) -> None:
         batch = [RunTag(k, str(v)) for k, v in tags.items()]
@@ -394,9 +396,10 @@ class Recorder:
         steps = signals.to_frame()
         spectra = amplitude_spectra(steps, dt)
         with tempfile.TemporaryDirectory() as tmp:
-            steps.to_parquet(Path(tmp) / "steps.parquet", compression="zstd", index=False)
-            spectra.to_parquet(Path(tmp) / "fft.parquet", compression="zstd", index=False)
-            self._retry(lambda: self.client.log_artifacts(self.run_id, tmp, "signals"), "signals/")
+            for frame, path in ((steps, Artifact.STEPS), (spectra, Artifact.FFT)):
+                frame.to_parquet(Path(tmp) / Path(path).name, compression="zstd", index=False)
+            where = folder(Artifact.SIGNALS)
+            self._retry(lambda: self.client.log_artifacts(self.run_id, tmp, where), where)
         if series:
             self.log_series(signal_series(signals.rows(0), spectra, box))
 
@@ -432,11 +435,11 @@ class Recorder:
         ``final_score``."""
         if final_score is not None and math.isfinite(final_score):
             self._pending.append(
-                Metric("final_score", float(final_score), int(time.time() * 1000), 0)
+                Metric(M.FINAL_SCORE, float(final_score), int(time.time() * 1000), 0)
             )
         self.flush()
         if failure_reason is not None:
-            self.set_tags({"failure_reason": failure_reason[:5000]})
+            self.set_tags({Tag.FAILURE_REASON: failure_reason[:5000]})
         state = RunStatus.to_string(RunStatus.from_string(status))
         self._retry(lambda: self.client.set_terminated(self.run_id, status=state), "status")
 

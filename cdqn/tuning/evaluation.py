@@ -25,10 +25,11 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf, read_write
 
+from cdqn.records import Artifact, Metric
 from cdqn.tuning.objective import area, ma100, padded
 
 log = logging.getLogger("cdqn.tune")
-RETURNS = "evaluation/returns.json"
+RETURNS = Artifact.EVALUATION_RETURNS
 """Artifact of an evaluation run: ``{seed: [return per episode]}``."""
 
 
@@ -53,7 +54,8 @@ def evaluate(study: Any, cfg: DictConfig, name: str) -> dict[str, Any]:
     row = summarise(agent, curves, n, conf.env.solve_threshold)
     out = {**row, "seeds": seeds, "diverged": len(failed), "seconds": time.perf_counter() - t0}
     tracker.client.log_dict(run, {str(s): list(map(float, c)) for s, c in curves.items()}, RETURNS)
-    tracker.metrics(run, {"objective": row["objective"], "final_score": row["final_score"]})
+    tracker.metrics(run, {Metric.OBJECTIVE: row["objective"],
+                          Metric.FINAL_SCORE: row["final_score"]})  # fmt: skip
     tracker.end(run, "FINISHED", "complete")
     log.info("%s on seeds %s: J = %.2f, final MA100 = %.1f ± %.1f (%.0f s)", name, seeds,
              row["objective"], row["final_score"], row["final_std"], out["seconds"])  # fmt: skip

@@ -8,6 +8,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from cdqn.records import Artifact, Tag, folder
+
 log = logging.getLogger("cdqn.tune")
 
 
@@ -15,13 +17,14 @@ def log_design(tracker: Any, run_id: str, setup: Any) -> None:
     """The design's record, report and certificate on run ``run_id`` (tags ``certificate``,
     ``design_source``; metrics worst pole, gains, learning-target ranges)."""
     rec = setup.design or {}
-    tracker.client.log_dict(run_id, rec, "design/controller.json")
-    if setup.artifacts is not None and (Path(setup.artifacts) / "report.txt").is_file():
-        tracker.client.log_artifact(run_id, str(Path(setup.artifacts) / "report.txt"), "design")
+    tracker.client.log_dict(run_id, rec, Artifact.DESIGN_RECORD)
+    report = Path(setup.artifacts or "") / "report.txt"
+    if setup.artifacts is not None and report.is_file():
+        tracker.client.log_artifact(run_id, str(report), folder(Artifact.DESIGN))
     cert = rec.get("certificate") or {}
     lt = rec.get("learning_target") or {}
     tags = {"certificate": "PASSED" if cert.get("passed", True) else "FAILED",
-            "design_source": setup.source}  # fmt: skip
+            Tag.DESIGN_SOURCE: setup.source}  # fmt: skip
     for k, v in tags.items():
         tracker.client.set_tag(run_id, k, str(v))
     values = {"worst_pole": cert.get("worst_pole"), "max_step_gain": lt.get("max_step_gain")}

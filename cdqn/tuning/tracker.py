@@ -10,6 +10,8 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from cdqn.records import Artifact, Metric, Tag
+
 log = logging.getLogger("cdqn.tune")
 
 
@@ -48,15 +50,15 @@ class Tracker:
                 return run_id
             except Exception:  # the store changed: start a new parent
                 log.warning("parent run %s not found; a new parent run is started", run_id)
-        tags = {"study": conf.tune.study, "kind": "tune", "env": conf.env.name,
-                "env_id": conf.env.id, "controller": conf.controller.name,
-                "git_commit": git_commit()}  # fmt: skip
+        tags = {Tag.STUDY: conf.tune.study, Tag.KIND: "tune", Tag.ENV: conf.env.name,
+                Tag.ENV_ID: conf.env.id, Tag.CONTROLLER: conf.controller.name,
+                Tag.GIT_COMMIT: git_commit()}  # fmt: skip
         run = self.client.create_run(self.experiment_id, run_name=f"tune-{conf.tune.study}",
                                      tags=tags)  # fmt: skip
         run_id = run.info.run_id
         container = OmegaConf.to_container(cfg, resolve=True)
         self.log_params(run_id, flatten(container))  # type: ignore[arg-type]
-        self.client.log_dict(run_id, container, "config.yaml")
+        self.client.log_dict(run_id, container, Artifact.CONFIG)
         study.set_user_attr("mlflow_parent", run_id)
         return run_id
 
@@ -64,7 +66,7 @@ class Tracker:
         run = self.client.create_run(
             self.experiment_id,
             run_name=name,
-            tags={"mlflow.parentRunId": parent, "kind": kind, **tags},
+            tags={"mlflow.parentRunId": parent, Tag.KIND: kind, **tags},
         )
         return run.info.run_id
 
@@ -82,7 +84,7 @@ class Tracker:
                 self.client.log_metric(run_id, k, float(v), step=step)
 
     def end(self, run_id: str, status: str, trial_status: str, reason: str | None = None) -> None:
-        self.client.set_tag(run_id, "trial_status", trial_status)
+        self.client.set_tag(run_id, Tag.TRIAL_STATUS, trial_status)
         if reason:
             self.client.set_tag(run_id, "reason", reason[:5000])
         self.client.set_terminated(run_id, status)
@@ -91,8 +93,8 @@ class Tracker:
         for rid in run_ids:
             self.client.set_tag(rid, "mlflow.parentRunId", parent)
             if reason:
-                self.client.set_tag(rid, "failure_reason", reason)
+                self.client.set_tag(rid, Tag.FAILURE_REASON, reason)
 
     def returns(self, run_id: str) -> list[float]:
-        hist = self.client.get_metric_history(run_id, "episode_return")
+        hist = self.client.get_metric_history(run_id, Metric.EPISODE_RETURN)
         return [m.value for m in sorted(hist, key=lambda m: m.step)]

@@ -12,6 +12,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from cdqn.control.errors import DesignError
+from cdqn.records import Metric
 from cdqn.tuning.objective import Progress, area, padded
 from cdqn.tuning.report import log_design
 from cdqn.tuning.space import sample
@@ -199,7 +200,7 @@ class Trial:
         final = float(np.mean([np.mean(c[-100:]) for c in curves]))  # type: ignore[index]
         self.trial.set_user_attr("status", "complete")
         self.trial.set_user_attr("final_score", final)
-        self.tracker.metrics(self.child, {"objective": value, "final_score": final})
+        self.tracker.metrics(self.child, {Metric.OBJECTIVE: value, Metric.FINAL_SCORE: final})
         self.tracker.end(self.child, "FINISHED", "complete")
         log.info("trial %d: J = %.2f, final MA100 = %.1f, %s", self.trial.number, value, final,
                  params)  # fmt: skip
