@@ -64,7 +64,13 @@ def test_run_leaves_a_complete_mlflow_run(
     info = client.get_run(result.run_id)
     assert info.info.status == "FINISHED", info.data.tags.get("failure_reason")
     tags = info.data.tags
-    assert (tags["env"], tags["controller"], tags["seed"]) == (env, controller, "5")
+    # the preset's id at another cap is labelled as that task (cdqn.envs.adopt)
+    label = {"cartpole": "CartPole-v1", "acrobot": "Acrobot-v1", "mountaincar": "MountainCar-v0"}
+    assert (tags["env"], tags["controller"], tags["seed"]) == (
+        f"{label[env]}-cap60",
+        controller,
+        "5",
+    )
     assert tags["git_commit"]
     params = info.data.params
     assert params["controller.name"] == controller and params["network.width"] == "32"
