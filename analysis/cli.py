@@ -50,7 +50,7 @@ def add_store_arguments(parser: argparse.ArgumentParser) -> None:
 def open_store(args: argparse.Namespace) -> RunStore:
     """The store named on the command line; exits with status 2 if it is no store (no such
     file, not an SQLite database, no server answering), 1 if it has no runs."""
-    from cdqn.training.tracking import TrackingError, check_readable  # noqa: PLC0415
+    from cdqn.training.tracking import TrackingError, check_readable
 
     try:
         check_readable(args.tracking_uri, timeout=10.0)

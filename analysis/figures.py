@@ -22,16 +22,16 @@ import matplotlib
 
 matplotlib.use("Agg")
 
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
-import seaborn as sns  # noqa: E402
-from matplotlib.axes import Axes  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
-from matplotlib.ticker import MaxNLocator  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
+import seaborn as sns
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
 
-from analysis.runs import RunStore, param_value  # noqa: E402
-from analysis.style import (  # noqa: E402
+from analysis.runs import RunStore, param_value
+from analysis.style import (
     CONTROLLER_ORDER,
     ENV_ORDER,
     controller_colors,
@@ -40,9 +40,9 @@ from analysis.style import (  # noqa: E402
     env_text,
     ordered,
 )
-from cdqn.records import Artifact, Metric  # noqa: E402
-from cdqn.records import Signal as S  # noqa: E402
-from cdqn.training.signals import ROUND_OFF, log_binned_max  # noqa: E402
+from cdqn.records import Artifact, Metric
+from cdqn.records import Signal as S
+from cdqn.training.signals import ROUND_OFF, log_binned_max
 
 FIGURE_METRICS = (Metric.RETURN_MA100, Metric.LOSS_MEAN)
 """The episode metrics the figures read (the rest come from per-step artifacts)."""

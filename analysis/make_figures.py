@@ -19,9 +19,9 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: make the repository root importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import pandas as pd  # noqa: E402
+import pandas as pd
 
-from analysis.cli import add_store_arguments, note, open_store, select_runs  # noqa: E402
+from analysis.cli import add_store_arguments, note, open_store, select_runs
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -75,13 +75,13 @@ def pick(runs: pd.DataFrame, column: str, given: str | None, default: str, where
 
 def known_names(column: str) -> set[str]:
     """Every controller name, or every environment preset name and gymnasium id."""
-    from cdqn.config import CONTROLLERS  # noqa: PLC0415
+    from cdqn.config import CONTROLLERS
 
     if column == "controller":
         return set(CONTROLLERS)
-    import gymnasium as gym  # noqa: PLC0415
+    import gymnasium as gym
 
-    from cdqn.envs import env_presets  # noqa: PLC0415
+    from cdqn.envs import env_presets
 
     return set(env_presets()) | set(gym.registry)
 

@@ -27,13 +27,13 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: make the repository root importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import pandas as pd  # noqa: E402
+import pandas as pd
 
-from analysis import claims as cl  # noqa: E402
-from analysis import table as tbl  # noqa: E402
-from analysis.cli import add_store_arguments, note, open_store, select_runs  # noqa: E402
-from analysis.columns import caption, settings_table  # noqa: E402
-from analysis.runs import RunStore, environment, where  # noqa: E402
+from analysis import claims as cl
+from analysis import table as tbl
+from analysis.cli import add_store_arguments, note, open_store, select_runs
+from analysis.columns import caption, settings_table
+from analysis.runs import RunStore, environment, where
 
 
 def parse_thresholds(items: list[str]) -> dict[str, float]:

@@ -32,13 +32,13 @@ import pandas as pd
 
 os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
 
-from mlflow.entities import ViewType  # noqa: E402
-from mlflow.exceptions import MlflowException  # noqa: E402
-from mlflow.store.db.db_types import DATABASE_ENGINES  # noqa: E402
-from mlflow.tracking import MlflowClient  # noqa: E402
+from mlflow.entities import ViewType
+from mlflow.exceptions import MlflowException
+from mlflow.store.db.db_types import DATABASE_ENGINES
+from mlflow.tracking import MlflowClient
 
-from cdqn import records  # noqa: E402
-from cdqn.config import (  # noqa: E402
+from cdqn import records
+from cdqn.config import (
     TARGET_CONTROLLERS,
     TARGET_FIELDS,
     TrackingConfig,
@@ -396,7 +396,7 @@ def _text(value: Any) -> str:
 def environment(runs: pd.DataFrame) -> pd.Series:
     """A run's environment for the analysis: its ``env`` tag, or its ``env_id`` when the tag
     names a preset of another id (runs made before ``env.id=<id>`` named runs by the id)."""
-    from cdqn.envs import env_presets  # noqa: PLC0415
+    from cdqn.envs import env_presets
 
     presets = env_presets()
 

@@ -135,7 +135,7 @@ def compose_config(overrides: list[str]) -> DictConfig:
 
 
 def _conf(cfg: DictConfig) -> Config:
-    return OmegaConf.to_object(cfg)  # type: ignore[return-value]
+    return OmegaConf.to_object(cfg)
 
 
 def measure_floor(cfg: DictConfig, steps: int, warmup: int) -> Throughput:

@@ -76,7 +76,7 @@ def check_train(cfg: DictConfig) -> None:
     rules (:func:`cdqn.envs.adopt`), and the environment as the run would build it."""
     if cfg.get("resume"):
         return  # the stored configuration is checked when the run is resumed
-    from cdqn.envs import adopt  # noqa: PLC0415 (gymnasium only when needed)
+    from cdqn.envs import adopt
 
     _check_env(_env_key(adopt(cfg).conf.env))
 
@@ -90,14 +90,14 @@ def _env_key(env: EnvConfig) -> str:
 def _check_env(key: str) -> None:
     """Build the environment once as the run would (id, kwargs, cap, features, scale,
     radial features); a multirun checks each distinct environment once."""
-    from cdqn.envs import make_env  # noqa: PLC0415 (gymnasium only once the rest passed)
+    from cdqn.envs import make_env
 
     make_env(EnvConfig(**json.loads(key))).close()
 
 
 def check_evaluate(cfg: DictConfig) -> None:
     """What ``python -m cdqn.evaluate`` refuses."""
-    validate_evaluate(OmegaConf.to_object(cfg))  # type: ignore[arg-type]
+    validate_evaluate(OmegaConf.to_object(cfg))
 
 
 def preflight(

@@ -141,7 +141,7 @@ def _env_config(client: MlflowClient, run_id: str, tmp: Path) -> EnvConfig:
         path = client.download_artifacts(run_id, CONFIG_ARTIFACT, str(tmp))
         stored = OmegaConf.load(path)
         env = OmegaConf.merge(OmegaConf.structured(EnvConfig), stored.env)
-        return OmegaConf.to_object(env)  # type: ignore[return-value]
+        return OmegaConf.to_object(env)
     except Exception:
         params = client.get_run(run_id).data.params
         if "env.id" not in params:
@@ -193,7 +193,7 @@ def _log(client: MlflowClient, result: EvalResult, params: dict[str, str]) -> No
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
 def main(cfg: DictConfig) -> float:
-    conf: EvaluateConfig = OmegaConf.to_object(cfg)  # type: ignore[assignment]
+    conf: EvaluateConfig = OmegaConf.to_object(cfg)
     try:
         result = evaluate(conf)
     except ConfigError as err:

@@ -138,7 +138,7 @@ population size, so a member's numbers never depend on ``K`` (``tests/test_fast_
 
 
 @njit(**_JIT)
-def forward_row(w1t, b1, w2, b2, x, p, q):  # noqa: ANN001, ANN201
+def forward_row(w1t, b1, w2, b2, x, p, q):
     """One member: ``p = b_1 + Σ_i x_i W_1ᵀ[i]``, ``q = W_2 relu(p) + b_2``."""
     n_obs, width = w1t.shape
     for j in range(width):
@@ -151,7 +151,7 @@ def forward_row(w1t, b1, w2, b2, x, p, q):  # noqa: ANN001, ANN201
 
 
 @njit(**_JIT)
-def output_row(w2, b2, p, q):  # noqa: ANN001, ANN201
+def output_row(w2, b2, p, q):
     """One member's output layer: ``q = W_2 relu(p) + b_2``."""
     for a in range(w2.shape[0]):
         acc = 0.0
@@ -161,7 +161,7 @@ def output_row(w2, b2, p, q):  # noqa: ANN001, ANN201
 
 
 @njit(**_JIT)
-def td_row(w2, x1, p1, x2, p2, a, b, g):  # noqa: ANN001, ANN201
+def td_row(w2, x1, p1, x2, p2, a, b, g):
     """One member: ``g = W_2[a] ⊙ [p1 > 0]`` (written into ``g``) and (Θ1, Θ2) of the module
     docstring with ``h = relu(p1)``, ``h' = relu(p2)``; ``Θ2``'s hidden-layer sum is
     ``Σ_j g_j W_2[b, j] [p2_j > 0]``."""
@@ -184,7 +184,7 @@ def td_row(w2, x1, p1, x2, p2, a, b, g):  # noqa: ANN001, ANN201
 
 
 @njit(**_JIT)
-def sgd_row(w1t, b1, w2, b2, x, p, a, s, g, x2, p2, p_next, q_next):  # noqa: ANN001, ANN201
+def sgd_row(w1t, b1, w2, b2, x, p, a, s, g, x2, p2, p_next, q_next):
     """One member, in place: ``W_2[a] += s relu(p)``, ``b_2[a] += s``, ``W_1ᵀ[i] += (s x_i) g``,
     ``b_1 += s g`` with ``g = ∂Q_a/∂b_1`` at ``x``; then the forward pass at ``x2`` with the
     new parameters from the one with the old parameters (``p2``):
@@ -209,19 +209,19 @@ def sgd_row(w1t, b1, w2, b2, x, p, a, s, g, x2, p2, p_next, q_next):  # noqa: AN
 
 
 @njit(**_JIT)
-def _forward_kernel(w1t, b1, w2, b2, x, rows, p, q):  # noqa: ANN001, ANN202
+def _forward_kernel(w1t, b1, w2, b2, x, rows, p, q):
     for k in rows:
         forward_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], q[k])
 
 
 @njit(**_JIT)
-def _td_kernel(w2, x1, p1, x2, p2, a, b, g, theta):  # noqa: ANN001, ANN202
+def _td_kernel(w2, x1, p1, x2, p2, a, b, g, theta):
     for k in range(w2.shape[0]):
         theta[k, 0], theta[k, 1] = td_row(w2[k], x1[k], p1[k], x2[k], p2[k], a[k], b[k], g[k])
 
 
 @njit(**_JIT)
-def _sgd_kernel(w1t, b1, w2, b2, x, p, a, scale, g, x2, p2, p_next, q_next):  # noqa: ANN001, ANN202
+def _sgd_kernel(w1t, b1, w2, b2, x, p, a, scale, g, x2, p2, p_next, q_next):
     for k in range(w1t.shape[0]):
         sgd_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], a[k], scale[k], g[k], x2[k], p2[k],
                 p_next[k], q_next[k])  # fmt: skip
@@ -331,7 +331,7 @@ parameters (about 30 KB) stays in L1 while the whole minibatch passes through it
 
 
 @njit(**_JIT)
-def _block_q(w1t, b1, w2, x, j0, j1, p, q):  # noqa: ANN001, ANN202
+def _block_q(w1t, b1, w2, x, j0, j1, p, q):
     """Add hidden units ``j0 … j1−1``'s share of ``Q(x, ·)`` to ``q``; ``p`` gets their
     pre-activations.  (Blocks are sliced, so that loops index from 0 and vectorise.)"""
     n = j1 - j0
@@ -350,7 +350,7 @@ def _block_q(w1t, b1, w2, x, j0, j1, p, q):  # noqa: ANN001, ANN202
 
 
 @njit(**_JIT)
-def _block_step(w1t, b1, w2, obs, actions, delta, lr, j0, j1, p, gw1, gb1, gw2):  # noqa: ANN001, ANN202
+def _block_step(w1t, b1, w2, obs, actions, delta, lr, j0, j1, p, gw1, gb1, gw2):
     """The gradient ``Σ_i δ_i ∂Q_{a_i}(s_i)/∂θ`` of hidden units ``j0 … j1−1``'s
     parameters, at the current parameters, then their step ``θ += lr · gradient``."""
     n = j1 - j0
@@ -388,7 +388,7 @@ def _block_step(w1t, b1, w2, obs, actions, delta, lr, j0, j1, p, gw1, gb1, gw2):
 
 @njit(**_JIT)
 def _double_dqn_kernel(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, obs, actions, rewards,
-                       terminated, discount, lr):  # fmt: skip  # noqa: ANN001, ANN202
+                       terminated, discount, lr):  # fmt: skip
     """:func:`double_dqn_step` on the arrays of one online and one target network, blocked
     over hidden units: first ``Q(s_i, ·)``, ``Q(s'_i, ·)`` and the target's ``Q̄(s'_i, ·)``
     for the whole minibatch, block by block; then the δ_i; then, block by block, the

@@ -34,9 +34,9 @@ def h2_report(conf: SynthesizeConfig, out: Path) -> str:
     """The gain-scheduled H2 as training runs it (:func:`cdqn.control.factory.make_controller`:
     LQR gains, gain map, learning target, certificate over the box), with its gains at the
     box's corners and nominal point."""
-    from cdqn.control.design import box_from_config  # noqa: PLC0415
-    from cdqn.control.factory import make_controller  # noqa: PLC0415
-    from cdqn.control.h2 import scheduled_gains  # noqa: PLC0415
+    from cdqn.control.design import box_from_config
+    from cdqn.control.factory import make_controller
+    from cdqn.control.h2 import scheduled_gains
 
     setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
     record = dict(setup.design)
@@ -44,7 +44,7 @@ def h2_report(conf: SynthesizeConfig, out: Path) -> str:
     ctrl = setup.controller
     pts = np.vstack([box.corners(), [box.nominal]])
     gains = scheduled_gains(pts, conf.train.discount, ctrl.w_x, ctrl.w_c, ctrl.research_map,
-                            ctrl.target)  # fmt: skip  # type: ignore[attr-defined]
+                            ctrl.target)  # fmt: skip
     record["gains_at"] = {
         f"({t1:.4g}, {t2:.4g})": g.tolist() for (t1, t2), g in zip(pts, gains, strict=True)
     }
@@ -75,12 +75,12 @@ def h2_report(conf: SynthesizeConfig, out: Path) -> str:
 
 def synthesize(cfg: DictConfig) -> str:
     """Design, write the artefacts into ``cfg.out``, return the report."""
-    from cdqn.envs import adopt  # noqa: PLC0415
+    from cdqn.envs import adopt
 
     adopted = adopt(cfg)  # env.id=<id>: that environment's cap, threshold and NTK box
     if adopted.change is not None:
         log.info("%s", adopted.change)
-    conf: SynthesizeConfig = adopted.conf  # type: ignore[assignment]
+    conf: SynthesizeConfig = adopted.conf
     out = Path(conf.out)
     if conf.controller.name == "h2":
         return h2_report(conf, out)
@@ -88,7 +88,7 @@ def synthesize(cfg: DictConfig) -> str:
         raise ConfigError(
             f"controller={conf.controller.name!r}: synthesize designs hinf, hinf_f or h2"
         )
-    from cdqn.control.design import (  # noqa: PLC0415
+    from cdqn.control.design import (
         cache_root,
         design_inputs,
         load_or_design,
@@ -96,11 +96,11 @@ def synthesize(cfg: DictConfig) -> str:
 
     box = None
     if conf.controller.synthesis.ntk_bounds == "measured":
-        import torch  # noqa: PLC0415
+        import torch
 
-        from cdqn.envs import env_sizes, make_env  # noqa: PLC0415
-        from cdqn.network import NetworkSpec, QNetwork  # noqa: PLC0415
-        from cdqn.ntk_bounds import measured_box  # noqa: PLC0415
+        from cdqn.envs import env_sizes, make_env
+        from cdqn.network import NetworkSpec, QNetwork
+        from cdqn.ntk_bounds import measured_box
 
         env = make_env(conf.env)
         n_obs, n_actions = env_sizes(env)

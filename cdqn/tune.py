@@ -35,9 +35,9 @@ CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
 def check_tune(cfg: DictConfig) -> None:
     """What ``python -m cdqn.tune`` refuses (for :func:`cdqn.cli.preflight`)."""
-    from cdqn.envs import adopt  # noqa: PLC0415 (gymnasium only when needed)
+    from cdqn.envs import adopt
 
-    validate_tune(adopt(cfg).conf)  # type: ignore[arg-type]
+    validate_tune(adopt(cfg).conf)
 
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="tune")
@@ -56,11 +56,11 @@ def main(cfg: DictConfig) -> None:
 
 if __name__ == "__main__":
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
-    from cdqn.cli import preflight  # noqa: PLC0415
+    from cdqn.cli import preflight
 
     preflight(sys.argv[1:], config_name="tune", check=check_tune)
     # the module's own main, not __main__'s: the joblib launcher's workers (tune.worker=0,1)
     # then import the task function and the config schema instead of unpickling copies
-    from cdqn.tune import main as tune_main  # noqa: PLC0415
+    from cdqn.tune import main as tune_main
 
     tune_main()

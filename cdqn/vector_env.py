@@ -341,7 +341,7 @@ class ClassicControlTwin:
 
 
 @njit(cache=True)
-def _count_steps(elapsed, cap, truncated):  # noqa: ANN001, ANN202
+def _count_steps(elapsed, cap, truncated):
     """gymnasium's ``TimeLimit``: count the step, truncate at ``cap`` (−1: no limit)."""
     for k in range(elapsed.shape[0]):
         elapsed[k] += 1
@@ -349,7 +349,7 @@ def _count_steps(elapsed, cap, truncated):  # noqa: ANN001, ANN202
 
 
 @njit(cache=True)  # strict IEEE arithmetic (no fastmath), libm cos/sin as gymnasium's NumPy
-def _cartpole_kernel(state, action, params, obs, reward, terminated):  # noqa: ANN001, ANN202
+def _cartpole_kernel(state, action, params, obs, reward, terminated):
     """gymnasium ``CartPoleEnv.step`` on each row of ``state`` (in place), operation for
     operation in gymnasium's order; ``params`` as :class:`ClassicControlTwin` packs them."""
     force_mag, gravity, masspole, total_mass = params[0], params[1], params[2], params[3]
@@ -388,7 +388,7 @@ def _cartpole_kernel(state, action, params, obs, reward, terminated):  # noqa: A
 
 
 @njit(cache=True)  # strict IEEE arithmetic (no fastmath), libm cos as gymnasium's math.cos
-def _mountaincar_kernel(state, action, params, obs, reward, terminated):  # noqa: ANN001, ANN202
+def _mountaincar_kernel(state, action, params, obs, reward, terminated):
     """gymnasium ``MountainCarEnv.step`` on each row of ``state`` (in place), operation for
     operation in gymnasium's order (``np.clip`` as min/max)."""
     force, gravity, max_speed, min_position = params[0], params[1], params[2], params[3]
@@ -408,7 +408,7 @@ def _mountaincar_kernel(state, action, params, obs, reward, terminated):  # noqa
 
 
 @njit(cache=True)
-def _acrobot_dsdt(y, c, two, out):  # noqa: ANN001, ANN202
+def _acrobot_dsdt(y, c, two, out):
     """gymnasium ``AcrobotEnv._dsdt`` at ``y = [θ1, θ2, θ̇1, θ̇2, torque]`` into ``out``,
     operation for operation (``x ** two`` is libm ``pow(x, 2)``, as NumPy's and Python's
     scalar ``x**2``; ``two`` is an argument so that the compiler cannot turn it into x*x)."""
@@ -437,7 +437,7 @@ def _acrobot_dsdt(y, c, two, out):  # noqa: ANN001, ANN202
 
 
 @njit(cache=True)
-def _acrobot_rk4(state, action, params, two, obs, reward, terminated):  # noqa: ANN001, ANN202
+def _acrobot_rk4(state, action, params, two, obs, reward, terminated):
     c = params
     dt = c[6] - 0  # gymnasium integrates over t = [0, dt]
     dt2 = dt / 2.0
@@ -476,7 +476,7 @@ def _acrobot_rk4(state, action, params, two, obs, reward, terminated):  # noqa: 
         obs[k, 4], obs[k, 5] = y[2], y[3]
 
 
-def _acrobot_kernel(state, action, params, obs, reward, terminated) -> None:  # noqa: ANN001
+def _acrobot_kernel(state, action, params, obs, reward, terminated) -> None:
     """gymnasium ``AcrobotEnv.step`` (one RK4 step of ``dt``, wrap, bound) for every member,
     in place (:func:`_acrobot_rk4`)."""
     _acrobot_rk4(state, action, params, 2.0, obs, reward, terminated)
@@ -501,7 +501,7 @@ def compiled_math_matches_numpy(samples: int = 4000) -> bool:
 
 
 @njit(cache=True)
-def _libm(x, two, out):  # noqa: ANN001, ANN202
+def _libm(x, two, out):
     for i in range(x.shape[0]):
         out[i, 0], out[i, 1], out[i, 2] = math.cos(x[i]), math.sin(x[i]), x[i] ** two
 

@@ -137,7 +137,7 @@ def signals_after_episode(monkeypatch: pytest.MonkeyPatch) -> Callable[..., None
         if armed.get("episode") == stats.episode:
             signals = armed.pop("signals")
             armed.clear()
-            for sig in signals:  # type: ignore[attr-defined]
+            for sig in signals:
                 os.kill(os.getpid(), sig)
 
     monkeypatch.setattr(Recorder, "log_episode", log_episode)
@@ -158,14 +158,14 @@ def signals_after_checkpoint(monkeypatch: pytest.MonkeyPatch) -> Iterator[Callab
     class Seen(logging.Handler):
         def emit(self, record: logging.LogRecord) -> None:
             if armed and record.getMessage().startswith("checkpoint at"):
-                armed["left"] = int(armed["left"]) - 1  # type: ignore[call-overload]
+                armed["left"] = int(armed["left"]) - 1
 
     def log_episode(self: Recorder, stats: EpisodeStats) -> None:
         original(self, stats)
-        if armed and int(armed["left"]) <= 0:  # type: ignore[call-overload]
+        if armed and int(armed["left"]) <= 0:
             signals = armed.pop("signals")
             armed.clear()
-            for sig in signals:  # type: ignore[attr-defined]
+            for sig in signals:
                 os.kill(os.getpid(), sig)
 
     handler = Seen(logging.INFO)

@@ -76,8 +76,8 @@ def test_presets_are_left_as_they_are_and_hash_as_before(env: str) -> None:
     assert adopted.change is None and adopted.cfg == cfg
     assert adopted.box_source == "config"
     tree = OmegaConf.to_container(cfg, resolve=True)
-    del tree["env"]["kwargs"]  # type: ignore[index]  # as recorded before env.kwargs existed
-    assert config_hash(tree) == config_hash(cfg)  # type: ignore[arg-type]
+    del tree["env"]["kwargs"]  # as recorded before env.kwargs existed
+    assert config_hash(tree) == config_hash(cfg)
     given = compose_config([f"env={env}", "+env.kwargs.render_mode=rgb_array"])
     assert config_hash(given) != config_hash(cfg)
 
@@ -228,7 +228,7 @@ class Store:
         self.uri = f"sqlite:///{folder / 'mlflow.db'}"
         self.client = MlflowClient(self.uri)
 
-    def run(self, name: str):  # noqa: ANN201
+    def run(self, name: str):
         found = [r for r in runs_of(self.uri) if r.info.run_name == name]
         assert len(found) == 1, [r.info.run_name for r in runs_of(self.uri)]
         return found[0]
@@ -258,7 +258,7 @@ def store(tmp_path_factory: pytest.TempPathFactory) -> Store:
     return st
 
 
-def _assert_adopted(run, controller: str) -> None:  # noqa: ANN001
+def _assert_adopted(run, controller: str) -> None:
     tags, params = run.data.tags, run.data.params
     assert (tags["env"], tags["env_id"], tags["controller"]) == (LABEL, TOY, controller)
     assert params["env.name"] == LABEL

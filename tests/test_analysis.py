@@ -332,7 +332,7 @@ def test_empty_store_is_a_clear_error(
 ) -> None:
     missing = f"sqlite:///{tmp_path / 'nothing.db'}"
     with pytest.raises(SystemExit) as exc:  # no store at all: exit status 2
-        script.main(["--tracking-uri", missing, "--out", str(tmp_path / "out")])  # type: ignore[attr-defined]
+        script.main(["--tracking-uri", missing, "--out", str(tmp_path / "out")])
     assert exc.value.code == 2
     assert f"error: --tracking-uri={missing!r}: no such file" in capsys.readouterr().err
     for uri, experiment in ((store_uri, "no-such-experiment"),):
@@ -342,7 +342,7 @@ def test_empty_store_is_a_clear_error(
                     "--tracking-uri",
                     uri,
                     "--experiment",
-                    experiment,  # type: ignore[attr-defined]
+                    experiment,
                     "--out",
                     str(tmp_path / "out"),
                 ]

@@ -35,7 +35,7 @@ def test_every_option_composes_and_validates(group: str) -> None:
     assert options
     for option in options:
         cfg = compose_config([f"{group}={option}"])
-        conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
+        conf: Config = OmegaConf.to_object(cfg)
         validate(conf)
 
 
@@ -43,7 +43,7 @@ def test_every_option_composes_and_validates(group: str) -> None:
 @pytest.mark.parametrize("controller", _options("controller"))
 def test_every_env_and_controller_builds(env: str, controller: str) -> None:
     cfg = compose_config([f"env={env}", f"controller={controller}", "network=small"])
-    conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
+    conf: Config = OmegaConf.to_object(cfg)
     gym_env = make_env(conf.env)
     n_obs, n_actions = env_sizes(gym_env)
     if conf.env.obs_indices is not None:
@@ -68,7 +68,7 @@ def test_weights_follow_the_env_choice() -> None:
 
 def test_exploration_schedule_follows_the_env_unless_train_sets_it() -> None:
     def schedule(*overrides: str) -> tuple[float, str]:
-        conf: Config = OmegaConf.to_object(compose_config(list(overrides)))  # type: ignore[assignment]
+        conf: Config = OmegaConf.to_object(compose_config(list(overrides)))
         return conf.train.eps_dec, conf.train.eps_schedule
 
     research = (1e-4, "random_action")
@@ -85,11 +85,11 @@ def test_double_dqn_takes_its_environments_settings_unless_overridden() -> None:
     per environment; the agent steps with that α."""
 
     def settings(*overrides: str) -> tuple[float, int, bool]:
-        conf: Config = OmegaConf.to_object(compose_config(["controller=ddqn", *overrides]))  # type: ignore[assignment]
+        conf: Config = OmegaConf.to_object(compose_config(["controller=ddqn", *overrides]))
         env = make_env(conf.env)
         net = QNetwork(NetworkSpec(*env_sizes(env), 8))
         env.close()
-        agent = make_agent(conf.controller, conf.train, net, None, np.random.default_rng(0))  # type: ignore[arg-type]
+        agent = make_agent(conf.controller, conf.train, net, None, np.random.default_rng(0))
         assert isinstance(agent, DDQNAgent)
         assert agent.optimizer.param_groups[0]["lr"] == agent.lr
         return agent.lr, agent.cfg.target_update, conf.env.normalize
@@ -110,7 +110,7 @@ def test_mountain_car_features_shared_and_integrator_kept_by_the_controlled_agen
     does."""
 
     def inputs_and_reset(*overrides: str) -> tuple[int, bool]:
-        conf: Config = OmegaConf.to_object(compose_config(list(overrides)))  # type: ignore[assignment]
+        conf: Config = OmegaConf.to_object(compose_config(list(overrides)))
         env = make_env(conf.env)
         size = env_sizes(env)[0]
         env.close()
@@ -133,7 +133,7 @@ def test_mountain_car_features_shared_and_integrator_kept_by_the_controlled_agen
 
 def test_any_discrete_gymnasium_id_runs_through_env_id() -> None:
     cfg = compose_config(["env.id=CartPole-v0", "env.max_episode_steps=null"])
-    env = make_env(OmegaConf.to_object(cfg).env)  # type: ignore[union-attr]
+    env = make_env(OmegaConf.to_object(cfg).env)
     assert env.spec is not None and env.spec.max_episode_steps == 200
     env.close()
 

@@ -79,4 +79,4 @@ def test_cover_errors() -> None:
     with pytest.raises(DesignError, match="cover order"):
         fit_cover(samples, PAPER_BOX.nominal, 1.0, (1.0, 10.0), -1)
     with pytest.raises(DesignError, match="noise"):
-        noise_cover((0.2,))  # type: ignore[arg-type]
+        noise_cover((0.2,))

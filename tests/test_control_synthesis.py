@@ -44,7 +44,7 @@ FAST = [
 
 def _conf(env: str, kind: str, extra: list[str] | None = None) -> Config:
     cfg = compose_config([f"env={env}", f"controller={kind}", *(extra or [])])
-    return OmegaConf.to_object(cfg)  # type: ignore[return-value]
+    return OmegaConf.to_object(cfg)
 
 
 @pytest.fixture(scope="session")

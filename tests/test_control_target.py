@@ -29,7 +29,7 @@ TARGET = ["weights.target.gamma_eff=[-0.9,-0.5]", "weights.target.step_scale=[0.
 
 def _conf(kind: str, extra: list[str]) -> Config:
     cfg = compose_config(["env=cartpole", f"controller={kind}", *FAST, *TARGET, *extra])
-    return OmegaConf.to_object(cfg)  # type: ignore[return-value]
+    return OmegaConf.to_object(cfg)
 
 
 def _inside(k1: float, k2: float, discount: float = 1.0) -> bool:

@@ -54,7 +54,7 @@ class _Flags(gym.Wrapper):
         super().__init__(env)
         self.flags: list[tuple[bool, bool]] = []
 
-    def step(self, action):  # noqa: ANN001, ANN201
+    def step(self, action):
         out = self.env.step(action)
         self.flags.append((bool(out[2]), bool(out[3])))
         return out
@@ -118,7 +118,7 @@ def _population(overrides: list[str], seeds: list[int]) -> tuple[list[Member], D
         on_member_end=lambda m, pop, j: states.__setitem__(m.seed, pop.member_state(j)),
     )  # fmt: skip
     for m in members:
-        m.cfg = states[m.seed]  # type: ignore[assignment]  # the member's final state
+        m.cfg = states[m.seed]  # the member's final state
     return members, agent
 
 
@@ -168,7 +168,7 @@ def test_ddqn_population_state_round_trip() -> None:
             members = [Member(s, None) for s in (0, 1)]
             train_population(agent, venv, members, episodes=10**6, discount=1.0, q_limit=1e6,
                              max_steps=steps)  # fmt: skip
-        return agent  # type: ignore[return-value]
+        return agent
 
     first = trained(300)  # past learning_starts, the buffer wrapped around
     state = first.population_state()
@@ -196,7 +196,7 @@ def _assert_same_state(a: dict, b: dict) -> None:
 
 
 def test_ddqn_population_member_is_recorded_as_its_single_run(tracking_uri: str) -> None:
-    from cdqn.training.run import run  # noqa: PLC0415
+    from cdqn.training.run import run
 
     base = [*BASE, "train.episodes=4", f"tracking.uri={tracking_uri}"]
     singles = [run(compose_config([*base, f"seed={s}"]), progress=False) for s in (3, 4)]

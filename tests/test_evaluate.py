@@ -31,7 +31,7 @@ def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[str, str]:
 
 
 def _config(store: str, run_id: str, **kw: object) -> EvaluateConfig:
-    return EvaluateConfig(run_id=run_id, tracking=TrackingConfig(uri=store), **kw)  # type: ignore[arg-type]
+    return EvaluateConfig(run_id=run_id, tracking=TrackingConfig(uri=store), **kw)
 
 
 def test_greedy_returns_of_the_stored_network(trained: tuple[str, str]) -> None:

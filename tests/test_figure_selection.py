@@ -36,7 +36,7 @@ def _runs() -> pd.DataFrame:
 
 
 def test_single_run_figures_show_the_largest_group() -> None:
-    ctx = FigureContext(store=None, runs=_runs(), selection=Selection())  # type: ignore[arg-type]
+    ctx = FigureContext(store=None, runs=_runs(), selection=Selection())
     run = ctx.selected
     assert run["settings"] == "network.width=2500, train.episodes=2000" and run["seed"] == 0
     assert any("[network.width=64, train.episodes=50]" in n for n in ctx.notes)
@@ -47,7 +47,7 @@ def test_single_run_figures_show_the_largest_group() -> None:
 def test_where_keeps_the_other_group() -> None:
     runs = _runs()
     quick = runs[runs["settings"].str.contains("64")]
-    ctx = FigureContext(store=None, runs=quick, selection=Selection())  # type: ignore[arg-type]
+    ctx = FigureContext(store=None, runs=quick, selection=Selection())
     assert ctx.selected["run_name"] == "cartpole-hinf-w64-e50-s0" and ctx.notes == []
 
 
@@ -62,7 +62,7 @@ class _Spectra:
 
 
 def test_a_constant_reward_panel_says_so() -> None:
-    ctx = FigureContext(store=_Spectra(), runs=_runs(), selection=Selection())  # type: ignore[arg-type]
+    ctx = FigureContext(store=_Spectra(), runs=_runs(), selection=Selection())
     fig = fft(ctx)
     texts = [t.get_text() for t in fig.axes[0].texts]
     assert any("is constant" in t for t in texts), texts

@@ -13,7 +13,7 @@ from tests.conftest import compose_config
 
 
 def _env(*overrides: str):
-    conf: Config = OmegaConf.to_object(compose_config(list(overrides)))  # type: ignore[assignment]
+    conf: Config = OmegaConf.to_object(compose_config(list(overrides)))
     return make_env(conf.env)
 
 

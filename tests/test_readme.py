@@ -155,8 +155,8 @@ def test_help_lists_the_groups_and_points_to_the_docs(tool: str, tmp_path: Path)
 
 def test_every_path_cdqn_writes_is_ignored() -> None:
     """The defaults of every place cdqn writes into the folder it runs in."""
-    from cdqn.config import TrackingConfig  # noqa: PLC0415
-    from cdqn.tuning.settings import TuneSettings  # noqa: PLC0415
+    from cdqn.config import TrackingConfig
+    from cdqn.tuning.settings import TuneSettings
 
     tune = TuneSettings()
     optuna = tune.storage.removeprefix("sqlite:///")

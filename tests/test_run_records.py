@@ -95,7 +95,7 @@ def test_run_names_show_the_settings_that_differ_from_the_defaults(
     overrides: list[str], name: str
 ) -> None:
     conf = OmegaConf.to_object(compose_config(overrides))
-    assert run_name(conf) == name  # type: ignore[arg-type]
+    assert run_name(conf) == name
 
 
 def test_a_resumed_run_says_what_its_time_covers() -> None:

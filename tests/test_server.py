@@ -39,7 +39,7 @@ class _NotMlflow(BaseHTTPRequestHandler):
 
     status = 404
 
-    def do_GET(self) -> None:  # noqa: N802 (http.server's name)
+    def do_GET(self) -> None:
         self.send_response(self.status)
         self.end_headers()
         self.wfile.write(b"<html>hello</html>")

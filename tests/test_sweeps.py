@@ -98,8 +98,8 @@ def test_config_hash_of_runs_recorded_before_own_targets_existed_is_kept() -> No
     setting (runs of earlier versions still count); one with an own range does not."""
     base = compose_config(["env=acrobot", "controller=hinf_f"])
     before = OmegaConf.to_container(base, resolve=True)
-    del before["weights"]["controller_target"]  # type: ignore[index]
-    assert config_hash(base) == config_hash(before)  # type: ignore[arg-type]
+    del before["weights"]["controller_target"]
+    assert config_hash(base) == config_hash(before)
     own = compose_config(
         [
             "env=acrobot",
@@ -290,7 +290,7 @@ def test_a_killed_sweep_started_again_continues_itsruns_of(tmp_path: Path) -> No
     assert sorted(after) == sorted(reference) and len(after) == 4
     for key, r in after.items():
         if key in before:  # continued in the same run, not trained again in a new one
-            assert r.info.run_id == before[key].info.run_id  # type: ignore[attr-defined]
+            assert r.info.run_id == before[key].info.run_id
         assert r.info.status == "FINISHED" and r.data.tags["population"] == "0-1"
         client = MlflowClient(uri)
         other = MlflowClient(f"sqlite:///{folders['reference'] / 'mlflow.db'}")
@@ -299,6 +299,6 @@ def test_a_killed_sweep_started_again_continues_itsruns_of(tmp_path: Path) -> No
         assert signal_table(client, r.info.run_id).equals(
             signal_table(other, reference[key].info.run_id)
         )
-    resumed = [k for k in left if after[k].data.tags.get("resume_count")]  # type: ignore[attr-defined]
+    resumed = [k for k in left if after[k].data.tags.get("resume_count")]
     assert resumed == [k for k in left if k in before], (left, resumed)
     print("continued after SIGKILL:", left)

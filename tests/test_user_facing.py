@@ -197,7 +197,7 @@ def test_adopt_keeps_explicit_values_and_matching_weights() -> None:
 
 def run_cli_script(script: str, args: list[str], cwd: Path):
     """``python analysis/<script> <args>`` as a user runs it."""
-    import subprocess  # noqa: PLC0415
+    import subprocess
 
     return subprocess.run(
         [sys.executable, str(ROOT / "analysis" / script), *args],

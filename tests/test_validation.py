@@ -123,7 +123,7 @@ def test_preflight_exits_2_with_message(capsys: pytest.CaptureFixture[str]):
 
 
 def test_validate_schema_directly():
-    conf: Config = OmegaConf.to_object(compose_config(["train.discount=0"]))  # type: ignore[assignment]
+    conf: Config = OmegaConf.to_object(compose_config(["train.discount=0"]))
     with pytest.raises(ConfigError, match=r"train\.discount=0\.0: the discount γ"):
         validate(conf)
 

@@ -87,7 +87,7 @@ class EpsilonGreedy:
 
 
 @njit(cache=True)
-def explore_ahead(rng, epsilon, eps_end, eps_dec, per_step, n_actions, out):  # noqa: ANN001, ANN201
+def explore_ahead(rng, epsilon, eps_end, eps_dec, per_step, n_actions, out):
     """The next ``len(out)`` decisions of :meth:`EpsilonGreedy.explore` from ``rng`` and
     ``epsilon`` (``per_step``: ``eps_schedule=step``): ``out[i]`` is the random action of
     step ``i`` or −1 (greedy).  Returns ε after them.
@@ -111,7 +111,7 @@ def explore_ahead(rng, epsilon, eps_end, eps_dec, per_step, n_actions, out):  # 
 
 
 @njit(cache=True)
-def draw_ahead(rng, n_actions, uniform, action):  # noqa: ANN001, ANN201
+def draw_ahead(rng, n_actions, uniform, action):
     """The next ``len(uniform)`` draws of :meth:`EpsilonGreedy.explore` under
     ``eps_schedule=episode`` from ``rng``: the uniform that is compared with ε, and the
     random action, of each step (the same generator order as ``explore``)."""
@@ -121,7 +121,7 @@ def draw_ahead(rng, n_actions, uniform, action):  # noqa: ANN001, ANN201
 
 
 @njit(cache=True)
-def decide(uniform, action, epsilon, out):  # noqa: ANN001, ANN201
+def decide(uniform, action, epsilon, out):
     """One step's decisions under ``eps_schedule=episode`` from draws made ahead
     (:func:`draw_ahead`): member ``k`` takes its random action where its uniform is at most
     its ε (as :meth:`EpsilonGreedy.explore`), else −1 (greedy)."""

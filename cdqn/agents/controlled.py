@@ -163,7 +163,7 @@ class ControlledAgent:
         self.explorer.epsilon = state["epsilon"]
         self.explorer.rng.bit_generator.state = state["rng"]
         if state["controller"] is not None:
-            self.controller.x[:] = state["controller"]  # type: ignore[attr-defined]
+            self.controller.x[:] = state["controller"]
 
 
 def _static_gains(controller: RuntimeController) -> tuple[float, float, float] | None:

@@ -623,7 +623,7 @@ def report(design: ControllerDesign) -> str:
 
 def write_artifacts(design: ControllerDesign, folder: Path) -> None:
     """controller.json, report.txt, closed_loop_sv.csv and the PNG plots into ``folder``."""
-    from cdqn.control import plots  # noqa: PLC0415  (matplotlib only when writing)
+    from cdqn.control import plots
 
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "controller.json").write_text(json.dumps(design.to_json(), indent=2))

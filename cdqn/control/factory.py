@@ -40,7 +40,7 @@ def make_controller(
         return _paper_controller(cfg, weights, lr)
     if cfg.design == "synthesize":
         # python-control and the synthesis code take seconds to import: only for a synthesis
-        from cdqn.control.design import synthesized_controller  # noqa: PLC0415
+        from cdqn.control.design import synthesized_controller
 
         return synthesized_controller(cfg, weights, discount, lr, box)
     raise ConfigError(f"controller.design={cfg.design!r}: allowed paper, synthesize")
@@ -52,8 +52,8 @@ def _scheduled_h2(
     """The gain-scheduled H2 with its learning target (:meth:`TargetBox.of_controller`),
     certified over the NTK box frozen at every sample and grid point
     (:func:`cdqn.control.h2.certify_scheduled`); :class:`DesignError` when the certificate fails."""
-    from cdqn.control.design import box_from_config  # noqa: PLC0415 (import time, above)
-    from cdqn.control.h2 import certify_scheduled  # noqa: PLC0415
+    from cdqn.control.design import box_from_config
+    from cdqn.control.h2 import certify_scheduled
 
     w_x, w_c = list(weights.h2.w_x), weights.h2.w_c
     asked = TargetBox.of_controller(weights, cfg.name)
@@ -112,7 +112,7 @@ def _pinned_target(
     does not; a γ_eff projected per step then takes different values on the two kinds, so the
     Bellman equation being learned depends on the transition (docs/research/learning.md, "One
     learning target per design")."""
-    from cdqn.control.h2 import scheduled_gains  # noqa: PLC0415 (import time, as above)
+    from cdqn.control.h2 import scheduled_gains
 
     k1, k2, _ = scheduled_gains(
         np.array([box.nominal], dtype=float), discount, w_x, w_c, research, target.array()

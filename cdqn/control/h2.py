@@ -111,7 +111,7 @@ def h2_gains(
 
 
 @njit(cache=True)
-def _h2_batch(a, b, g, w1, w2, w3, wc, out):  # noqa: ANN001, ANN202
+def _h2_batch(a, b, g, w1, w2, w3, wc, out):
     worst = H2_SOLVED
     for i in range(a.shape[0]):
         out[i, 0], out[i, 1], out[i, 2], status = h2_closed_form(a[i], b[i], g, w1, w2, w3, wc)

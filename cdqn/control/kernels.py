@@ -32,7 +32,7 @@ def static_gain_u(k1: float, k2: float, k3: float, x_e: float, q1: float, q2: fl
 
 
 @njit(cache=True)
-def state_space_step(Ad, Bd, C, D, x, x_e, q1, q2):  # noqa: ANN001, ANN201
+def state_space_step(Ad, Bd, C, D, x, x_e, q1, q2):
     """One step of the discrete-time controller, ``v = [x_e, Q1, Q2]``:
     ``u = C x + D v``, then ``x ← A_d x + B_d v`` (in place).  Sums run in index order."""
     n = x.shape[0]
@@ -53,7 +53,7 @@ def state_space_step(Ad, Bd, C, D, x, x_e, q1, q2):  # noqa: ANN001, ANN201
 
 
 @njit(cache=True)
-def h2_closed_form(a, b, g, w1, w2, w3, wc):  # noqa: ANN001, ANN201
+def h2_closed_form(a, b, g, w1, w2, w3, wc):
     """``(k1, k2, k3, status)`` of the LQR of the augmented model at ``(Θ1, Θ2) = (a, b)``
     with the paper's ``B_u`` (closed form of :mod:`cdqn.control.h2`, whose docstring
     derives it); ``status`` is :data:`H2_SOLVED` or the reason there is no solution."""
@@ -85,7 +85,7 @@ def h2_closed_form(a, b, g, w1, w2, w3, wc):  # noqa: ANN001, ANN201
 
 
 @njit(cache=True)
-def project_target(k1, k2, g, target, rho):  # noqa: ANN001, ANN201
+def project_target(k1, k2, g, target, rho):
     """(k1, k2) moved into the learning target ``target = [γ_eff lo, γ_eff hi, 1 + k1 lo,
     1 + k1 hi, cap]`` (:mod:`cdqn.control.target`): ``1 + k1`` and ``γ_eff = (γ − k2)/(1 + k1)``
     clipped to their ranges (``γ_eff`` taken at the range's centre where ``1 + k1 ≤ 0``).
@@ -102,7 +102,7 @@ def project_target(k1, k2, g, target, rho):  # noqa: ANN001, ANN201
 
 
 @njit(cache=True)
-def scheduled_lqr_step(theta1, theta2, g, w_x, wc, research, target, gains, x_e, q1, q2):  # noqa: ANN001, ANN201
+def scheduled_lqr_step(theta1, theta2, g, w_x, wc, research, target, gains, x_e, q1, q2):
     """One step of the gain-scheduled H2 controller (paper Sec. 4.1): the gains of
     :func:`h2_closed_form` at this step's (Θ1, Θ2), mapped by the paper
     (``(k1, k2, k3)``) or the research code (``(k3, −k2, k1)``, ``research``), then (k1, k2)

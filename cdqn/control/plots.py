@@ -8,11 +8,11 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from cdqn.control.box import NTKBox  # noqa: E402
-from cdqn.control.weights import SisoWeight  # noqa: E402
+from cdqn.control.box import NTKBox
+from cdqn.control.weights import SisoWeight
 
 
 def _finish(

@@ -90,7 +90,7 @@ class ScheduledLQR:
     @property
     def gains(self) -> tuple[float, float, float]:
         """The gains (k1, k2, k3) of the last step that had an LQR solution."""
-        return tuple(self._gains.tolist())  # type: ignore[return-value]
+        return tuple(self._gains.tolist())
 
     def reset(self) -> None:
         pass

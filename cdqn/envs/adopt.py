@@ -87,7 +87,7 @@ def adopt(cfg: DictConfig) -> Adopted:
             f"env.max_episode_steps=null: {env.id} is registered without an episode cap "
             "(max_episode_steps) and none was given; give one, env.max_episode_steps=<steps>"
         )
-    conf: Config = OmegaConf.to_object(out)  # type: ignore[assignment]
+    conf: Config = OmegaConf.to_object(out)
     validate(conf)
     head = ""
     if preset is not None:

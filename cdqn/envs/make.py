@@ -147,7 +147,7 @@ def make_env(cfg: EnvConfig) -> gym.Env:
         env = ObservationSubset(env, list(cfg.obs_indices))
     if cfg.normalize:
         widths = cfg.normalize_scale
-        n = env.observation_space.shape[0]  # type: ignore[index]
+        n = env.observation_space.shape[0]
         if widths is not None and (len(widths) != n or not all(w > 0 for w in widths)):
             env.close()
             raise ConfigError(

@@ -22,11 +22,11 @@ def env_presets(conf_dir: Path = CONF_DIR) -> dict[str, EnvConfig]:
         node = OmegaConf.load(folder / f"{stem}.yaml")
         assert isinstance(node, DictConfig)
         bases = [d for d in node.pop("defaults", []) if d != "_self_"]
-        return OmegaConf.merge(*[load(b) for b in bases], node)  # type: ignore[return-value]
+        return OmegaConf.merge(*[load(b) for b in bases], node)
 
     out: dict[str, EnvConfig] = {}
     for path in sorted(folder.glob("*.yaml")):
         preset = OmegaConf.merge(OmegaConf.structured(EnvConfig), load(path.stem))
-        env: EnvConfig = OmegaConf.to_object(preset)  # type: ignore[assignment]
+        env: EnvConfig = OmegaConf.to_object(preset)
         out[env.name] = env
     return out

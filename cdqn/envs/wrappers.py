@@ -38,7 +38,7 @@ class OneHot(gym.ObservationWrapper):
     def parts(space: Space) -> tuple[list[int], list[int]]:
         """Sizes ``n`` and first values ``start`` of the ``Discrete`` parts of ``space``."""
         spaces = space.spaces if isinstance(space, Tuple) else (space,)
-        return [int(s.n) for s in spaces], [int(s.start) for s in spaces]  # type: ignore[attr-defined]
+        return [int(s.n) for s in spaces], [int(s.start) for s in spaces]
 
     def observation(self, observation: object) -> np.ndarray:
         values = observation if isinstance(observation, tuple) else (observation,)

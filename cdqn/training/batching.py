@@ -58,7 +58,7 @@ def job_shape(cfg: DictConfig) -> JobShape:
     """:class:`JobShape` of a composed job configuration (its ``hydra`` node is ignored):
     batchable when it trains one seed (``train.population=1``, no ``resume``) and, once its
     environment is adopted (:func:`cdqn.envs.adopt`), :func:`batchable`."""
-    from cdqn.envs import adopt  # noqa: PLC0415 (gymnasium only when composing)
+    from cdqn.envs import adopt
 
     job = copy.deepcopy(cfg)
     with open_dict(job):

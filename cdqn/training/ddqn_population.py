@@ -248,7 +248,7 @@ class DDQNPopulation:
 
 
 @njit(cache=True)
-def _act_kernel(w1t, b1, w2, b2, obs, x, p, q, plan, actions):  # noqa: ANN001, ANN202
+def _act_kernel(w1t, b1, w2, b2, obs, x, p, q, plan, actions):
     """Per member: the forward pass at ``obs`` (kept in ``x, p, q`` for the update), then the
     planned random action or ``argmax Q(obs, ·)``."""
     for k in range(obs.shape[0]):
@@ -262,7 +262,7 @@ def _act_kernel(w1t, b1, w2, b2, obs, x, p, q, plan, actions):  # noqa: ANN001, 
 def _record_kernel(w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, theta, actions, reward, next_obs,
                    terminated, obs, buf_obs, buf_next, buf_actions, buf_rewards,
                    buf_terminated, size, pos, steps, schedule, learn, last_loss, ep, t, ret,
-                   rows):  # fmt: skip  # noqa: ANN001, ANN202
+                   rows):  # fmt: skip
     """Per member, in the order of :meth:`cdqn.agents.DDQNAgent.update`: the pass at s',
     Q1, Q2, Θ1, Θ2 and the signal row (with the last loss), the transition into the buffer,
     the step count and whether the member learns on this step."""
@@ -297,7 +297,7 @@ def _record_kernel(w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, theta, actions, rew
 def _learn_kernel(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, buf_obs, buf_next, buf_actions,
                   buf_rewards, buf_terminated, idx, pairs, b_actions, b_rewards, b_terminated,
                   hyper, steps, schedule, learn, last_loss, terminated, truncated, rows,
-                  q_limit, flags, loss_seen):  # fmt: skip  # noqa: ANN001, ANN202
+                  q_limit, flags, loss_seen):  # fmt: skip
     """Per member: the minibatch step of the learning members (their minibatch gathered as
     :meth:`cdqn.agents.replay.ReplayBuffer.sample` and :func:`cdqn.network.double_dqn_step`
     hand it over, then the single run's kernel), the target copy every ``target_update``

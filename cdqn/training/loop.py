@@ -107,7 +107,7 @@ def episode_stats(
 
 
 @njit(cache=True)
-def _episode_means(rows, discount):  # noqa: ANN001, ANN202
+def _episode_means(rows, discount):
     """Mean of the finite losses (NaN if none), of |u| and of Θ1, and the share of steps
     with Θ1 < γ Θ2; one pass over the rows, sums in row order."""
     loss = u = theta1 = 0.0
@@ -125,7 +125,7 @@ def _episode_means(rows, discount):  # noqa: ANN001, ANN202
 
 
 @njit(cache=True)
-def _outside_shares(rows, theta1_lo, theta1_hi, ratio_lo, ratio_hi):  # noqa: ANN001, ANN202
+def _outside_shares(rows, theta1_lo, theta1_hi, ratio_lo, ratio_hi):
     """Shares of the rows whose kernel leaves the box (paper Sec. 3, "Boundedness of the
     parametric uncertainty"): Θ1 ∉ [Θ1_lo, Θ1_hi], ρ = Θ2/Θ1 < ρ_lo and ρ > ρ_hi.
 
@@ -223,7 +223,7 @@ def train(
                     break
             replayed = 0
             if tail is not None and qualifies(replay, bool(terminated), bool(truncated), ret):
-                for rec in agent.replay(tail.transitions(), replay.repeats):  # type: ignore[attr-defined]
+                for rec in agent.replay(tail.transitions(), replay.repeats):
                     if not _healthy(rec, q_limit):
                         _diagnose(rec, q_limit, ep, t)
                     replayed += 1

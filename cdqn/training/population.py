@@ -110,7 +110,7 @@ def start_population(
     true ``should_stop()`` ends the population as a signal does (members KILLED); both
     serve :mod:`cdqn.tune` (intermediate values, pruning).  ``cfg`` is adopted and
     validated (:func:`cdqn.training.run.run_population`)."""
-    conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
+    conf: Config = OmegaConf.to_object(cfg)
     uri = resolve_tracking_uri(conf.tracking.uri)
     check_tracking(uri, conf.tracking.timeout)
     ensure_store(uri, conf.tracking.experiment)
@@ -258,9 +258,9 @@ def train_members(
 
     def on_episode(m: Member, stats: object) -> None:
         assert m.recorder is not None
-        if stats.episode not in m.logged:  # type: ignore[attr-defined]
+        if stats.episode not in m.logged:
             try:
-                m.recorder.log_episode(stats)  # type: ignore[arg-type]
+                m.recorder.log_episode(stats)
             except TrackingOutage as err:  # the episode's metrics stay pending
                 went_away(err)
         if observe is not None:
@@ -427,7 +427,7 @@ def resume_population(uri: str, tracking: Any, runs: list, progress: bool) -> Po
         _forget_local(folder, [], results)
         return PopulationResult([results[s] for s in sorted(results)])
     cfgs = [stored_config(client, r.info.run_id, tracking) for r in runs]
-    confs: list[Config] = [OmegaConf.to_object(c) for c in cfgs]  # type: ignore[misc]
+    confs: list[Config] = [OmegaConf.to_object(c) for c in cfgs]
     conf = confs[0]
     validate(conf)
     setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
@@ -463,13 +463,13 @@ def resume_population(uri: str, tracking: Any, runs: list, progress: bool) -> Po
         if (
             None not in local.values()
             and len(seqs) == 1
-            and all(loadable(item[0], venv) for item in local.values())  # type: ignore[index]
+            and all(loadable(item[0], venv) for item in local.values())
         ):
             if (newest := seqs.pop()) >= (common or 0):
                 log.info("continuing the population from its local checkpoints in %s",
                          Path(folder).resolve())  # fmt: skip
-                chosen = {seed: item[0] for seed, item in local.items()}  # type: ignore[index]
-                pending = {seed: item[1] for seed, item in local.items()}  # type: ignore[index]
+                chosen = {seed: item[0] for seed, item in local.items()}
+                pending = {seed: item[1] for seed, item in local.items()}
                 sequence = max(sequence, newest)
         elif any(item is not None for item in local.values()):
             log.warning("local checkpoints in %s do not cover the whole population; ignored",
@@ -540,7 +540,7 @@ def close_from_local(uri: str, client: MlflowClient, run: Any, tracking: Any) ->
     if found is None:
         return None
     closing, pending = found
-    conf: Config = OmegaConf.to_object(stored_config(client, run_id, tracking))  # type: ignore[assignment]
+    conf: Config = OmegaConf.to_object(stored_config(client, run_id, tracking))
     m = Member(conf.seed, OmegaConf.create(), status=closing.status, reason=closing.reason)
     m.returns = list(closing.returns)
     if closing.signals is not None:
@@ -590,9 +590,9 @@ def start_member_run(
         uri,
         conf.tracking.experiment,
         run_name(conf, m.seed),
-        flatten(container),  # type: ignore[arg-type]
+        flatten(container),
         tags,
-        config=container,  # type: ignore[arg-type]
+        config=container,
     )
     if setup.design:
         rec.log_dict(setup.design, Artifact.DESIGN_RECORD)

@@ -197,7 +197,7 @@ def stored_config(client: MlflowClient, run_id: str, tracking: Any) -> DictConfi
             ) from None
     stored.resume = None
     stored.tracking = tracking
-    return stored  # type: ignore[return-value]
+    return stored
 
 
 def population_runs(client: MlflowClient, run: Run) -> list[Run]:

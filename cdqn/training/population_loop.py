@@ -252,7 +252,7 @@ def train_population(
         staging.flush_all(members)
         for j, m in items:
             if tail is not None:
-                m.replay_tail = tail.transitions(j, min(int(t[j]), replay.last or int(t[j])))  # type: ignore[union-attr]
+                m.replay_tail = tail.transitions(j, min(int(t[j]), replay.last or int(t[j])))
         return [(m, checkpoints.capture(j, m, obs, t, ret)) for j, m in items]
 
     def capture_all() -> list[tuple[Member, Any]]:
@@ -296,13 +296,13 @@ def train_population(
                     staging.flush(j, m)
                     replayed = 0
                     end = (bool(out.terminated[j]), bool(out.truncated[j]), float(ret[j]))
-                    if tail is not None and qualifies(replay, *end):  # type: ignore[arg-type]
-                        steps_j = min(int(t[j]), replay.last or int(t[j]))  # type: ignore[union-attr]
+                    if tail is not None and qualifies(replay, *end):
+                        steps_j = min(int(t[j]), replay.last or int(t[j]))
                         replayed = agent.replay(
                             j,
                             tail.transitions(j, steps_j),
                             replay.repeats,
-                            q_limit,  # type: ignore[union-attr]
+                            q_limit,
                         )
                         if replayed < 0:
                             err = DivergenceError(

@@ -376,7 +376,7 @@ class ControlledPopulation:
 
 
 @njit(cache=True)
-def _act_kernel(w1t, b1, w2, b2, obs, x, p, q, plan, actions):  # noqa: ANN001, ANN202
+def _act_kernel(w1t, b1, w2, b2, obs, x, p, q, plan, actions):
     """Per member: the forward pass at ``obs`` unless ``x`` already holds it (as
     :meth:`cdqn.network.StackedTwoLayer.forward` with ``reuse``), then the planned random
     action or ``argmax Q(obs, ·)``."""
@@ -395,7 +395,7 @@ def _act_kernel(w1t, b1, w2, b2, obs, x, p, q, plan, actions):  # noqa: ANN001, 
 @njit(cache=True)
 def _controlled_step(k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, a, reward, terminated,
                      alpha, discount, bootstrap_terminal, kind, gains, loss_weight, Ad, Bd, C, D,
-                     xc, w_x, w_c, research, target, unsolved, x_e):  # fmt: skip  # noqa: ANN001, ANN202
+                     xc, w_x, w_c, research, target, unsolved, x_e):  # fmt: skip
     """Member ``k``'s controlled step on the transition ``(x[k], a, reward, x2)``, in the order
     of operations of :meth:`cdqn.agents.ControlledAgent.update`: ``x[k], p[k], q[k]`` hold the
     pass at ``s``, ``x2`` holds ``s'``; afterwards they hold the pass at ``s'`` with the new
@@ -436,7 +436,7 @@ def _controlled_step(k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, a, re
 def _update_kernel(w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, actions, reward,
                    next_obs, terminated, truncated, hyper, bootstrap_terminal, kind, gains,
                    loss_weight, Ad, Bd, C, D, xc, w_x, w_c, research, target, unsolved, x_e, ep,
-                   t, ret, rows, q_limit, flags, loss_seen):  # fmt: skip  # noqa: ANN001, ANN202
+                   t, ret, rows, q_limit, flags, loss_seen):  # fmt: skip
     """:meth:`ControlledPopulation.update` (module docstring), member by member
     (:func:`_controlled_step`)."""
     alpha, discount = hyper[0], hyper[1]
@@ -470,7 +470,7 @@ def _update_kernel(w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, actions, r
 def _replay_kernel(k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, obs, actions, rewards,
                    next_obs, terminated, repeats, hyper, bootstrap_terminal, kind, gains,
                    loss_weight, Ad, Bd, C, D, xc, w_x, w_c, research, target, unsolved, x_e,
-                   q_limit):  # fmt: skip  # noqa: ANN001, ANN202
+                   q_limit):  # fmt: skip
     """Episodic replay of member ``k``: ``repeats`` passes over the transitions
     ``(obs[i], actions[i], rewards[i], next_obs[i], terminated[i])`` in order, each through
     :func:`_controlled_step` after the forward pass at ``obs[i]`` (reused when the member's

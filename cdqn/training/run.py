@@ -107,7 +107,7 @@ def _population(
 def _member(cfg: DictConfig, seed: int) -> Adopted:
     """The adopted single run that the member of seed ``seed`` stands for."""
     member = member_config(cfg, seed)
-    return Adopted(member, OmegaConf.to_object(member), None)  # type: ignore[arg-type]
+    return Adopted(member, OmegaConf.to_object(member), None)
 
 
 def resume(cfg: DictConfig, progress: bool = True) -> RunResult:

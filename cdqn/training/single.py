@@ -67,7 +67,7 @@ def start_run(cfg: DictConfig, conf: Config, env: gym.Env, uri: str, progress: b
         raise
 
     container = OmegaConf.to_container(cfg, resolve=True)
-    params = flatten(container)  # type: ignore[arg-type]
+    params = flatten(container)
     tags = {
         Tag.ENV: conf.env.name,
         Tag.ENV_ID: conf.env.id,
@@ -86,7 +86,7 @@ def start_run(cfg: DictConfig, conf: Config, env: gym.Env, uri: str, progress: b
             run_name(conf),
             params,
             tags,
-            config=container,  # type: ignore[arg-type]
+            config=container,
         )
     except BaseException:
         env.close()
@@ -125,7 +125,7 @@ def resume_run(
             run_id,
         )
     stored = stored_config(client, run_id, cfg.tracking)
-    conf: Config = OmegaConf.to_object(stored)  # type: ignore[assignment]
+    conf: Config = OmegaConf.to_object(stored)
     validate(conf)
     env = make_env(conf.env)
     try:

@@ -43,7 +43,7 @@ from cdqn.config import (
 try:
     import fcntl
 except ImportError:  # Windows: no advisory locks, PrepareStore still creates the store once
-    fcntl = None  # type: ignore[assignment]
+    fcntl = None
 
 from hydra.experimental.callback import Callback
 from mlflow.entities import Run

@@ -72,8 +72,8 @@ def _train_split(cfg: DictConfig, processes: int) -> list[Any]:
     trained by its own ``python -m cdqn.tuning.evaluation <config> <result>`` process side by
     side (new interpreters: a study may itself run in a launcher's worker process); the
     members' results in seed order."""
-    from cdqn.training.result import RunResult  # noqa: PLC0415
-    from cdqn.training.run import run_population  # noqa: PLC0415
+    from cdqn.training.result import RunResult
+    from cdqn.training.run import run_population
 
     k = int(cfg.train.population)
     if processes == 1:
@@ -106,13 +106,13 @@ def _train_split(cfg: DictConfig, processes: int) -> list[Any]:
 def _train_part(config: Path, result: Path) -> None:
     """One part of :func:`_train_split`: train the population of ``config``, write its
     members' results to ``result`` (JSON)."""
-    import dataclasses  # noqa: PLC0415
+    import dataclasses
 
-    from cdqn.config import Config  # noqa: PLC0415
-    from cdqn.training.run import run_population  # noqa: PLC0415
+    from cdqn.config import Config
+    from cdqn.training.run import run_population
 
     cfg = OmegaConf.merge(OmegaConf.structured(Config), OmegaConf.load(config))
-    members = run_population(cfg, progress=False).members  # type: ignore[arg-type]
+    members = run_population(cfg, progress=False).members
     result.write_text(json.dumps([dataclasses.asdict(m) for m in members]))
 
 
@@ -219,10 +219,10 @@ def comparison_table(rows: list[dict[str, Any]], threshold: float | None, episod
 
 def _figure(rows: list[dict[str, Any]], env: Any, out: Path) -> None:
     """Mean MA100 over the seeds with ± one std, one line per agent."""
-    import matplotlib  # noqa: PLC0415
+    import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # noqa: PLC0415
+    import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 4))
     for r in rows:

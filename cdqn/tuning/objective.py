@@ -53,4 +53,4 @@ class Progress:
         curves = [padded(r, n, s in self.failed) for s, r in self.returns.items()]
         if any(c is None for c in curves):
             return None
-        return area(curves)  # type: ignore[arg-type]
+        return area(curves)

@@ -29,7 +29,7 @@ class EpisodeMedianPruner(BasePruner):
         self.warmup_episodes = warmup_episodes
 
     def prune(self, study: Any, trial: Any) -> bool:
-        from optuna.trial import TrialState  # noqa: PLC0415
+        from optuna.trial import TrialState
 
         n = trial.last_step
         if n is None or n < self.warmup_episodes:

@@ -40,13 +40,13 @@ def log_design(tracker: Any, run_id: str, setup: Any) -> None:
 def plot_study(tracker: Any, parent: str, study: Any) -> None:
     """Optimisation history and parameter importances (optuna.visualization.matplotlib) and
     the trials as JSON, on the parent run."""
-    import warnings  # noqa: PLC0415
+    import warnings
 
-    import matplotlib  # noqa: PLC0415
+    import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # noqa: PLC0415
-    from optuna.visualization import matplotlib as ovm  # noqa: PLC0415
+    import matplotlib.pyplot as plt
+    from optuna.visualization import matplotlib as ovm
 
     with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings():
         warnings.simplefilter("ignore")  # optuna marks these plots experimental

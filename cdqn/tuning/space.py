@@ -28,9 +28,9 @@ def sample(trial: Any, space: dict[str, ParamSpec]) -> dict[str, Any]:
         if p.choices is not None:
             out[name] = trial.suggest_categorical(name, list(p.choices))
         elif p.integer:
-            out[name] = trial.suggest_int(name, int(p.low), int(p.high), log=p.log)  # type: ignore[arg-type]
+            out[name] = trial.suggest_int(name, int(p.low), int(p.high), log=p.log)
         else:
-            out[name] = trial.suggest_float(name, float(p.low), float(p.high), log=p.log)  # type: ignore[arg-type]
+            out[name] = trial.suggest_float(name, float(p.low), float(p.high), log=p.log)
     return out
 
 

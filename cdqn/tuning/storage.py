@@ -10,7 +10,7 @@ from typing import Any
 try:
     import fcntl
 except ImportError:  # Windows: one worker per study
-    fcntl = None  # type: ignore[assignment]
+    fcntl = None
 
 
 HEARTBEAT = 60
@@ -62,9 +62,9 @@ def open_storage(url: str) -> Any:
     """Optuna storage of ``url``: an SQLite path made absolute (its folder created), with
     heartbeats so that a trial whose process died is failed and retried once
     (``RetryHeartbeatStaleTrialCallback``) when the study runs again."""
-    import warnings  # noqa: PLC0415
+    import warnings
 
-    import optuna  # noqa: PLC0415
+    import optuna
 
     warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
     if url.startswith("sqlite:///") and not url.startswith("sqlite:////"):

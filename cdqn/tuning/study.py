@@ -36,13 +36,13 @@ class Study:
     """The study of ``cfg`` (a composed ``conf/tune.yaml``)."""
 
     def __init__(self, cfg: DictConfig) -> None:
-        from cdqn.envs import adopt  # noqa: PLC0415 (gymnasium only when needed)
+        from cdqn.envs import adopt
 
         adopted = adopt(cfg)  # the study's environment: label, cap, threshold, box source
         if adopted.change is not None:
             log.info("%s", adopted.change)
         cfg = adopted.cfg
-        self.conf: TuneConfig = adopted.conf  # type: ignore[assignment]
+        self.conf: TuneConfig = adopted.conf
         validate_tune(self.conf)
         self.cfg = cfg
         t = self.conf.tune
@@ -52,7 +52,7 @@ class Study:
         self.space = self._offered(t.space)
         self.uri = resolve_tracking_uri(self.conf.tracking.uri)
         container = OmegaConf.to_container(cfg, resolve=True)
-        container.pop("tune")  # type: ignore[union-attr]
+        container.pop("tune")
         base = OmegaConf.merge(OmegaConf.structured(Config), container)
         with read_write(base):
             base.train.episodes = self.episodes
@@ -69,9 +69,9 @@ class Study:
 
     def _offered(self, space: dict[str, Any]) -> dict[str, Any]:
         """The search space as this environment's observation allows it."""
-        import numpy as np  # noqa: PLC0415
+        import numpy as np
 
-        from cdqn.envs import RadialFeatures, make_env  # noqa: PLC0415
+        from cdqn.envs import RadialFeatures, make_env
 
         env_cfg = copy.deepcopy(self.conf.env)
         env_cfg.rbf_centres = None
@@ -105,13 +105,13 @@ class Study:
         return cfg
 
     def _measure(self, cfg: DictConfig) -> tuple[list[float], list[float]]:
-        import torch  # noqa: PLC0415
+        import torch
 
-        from cdqn.envs import env_sizes, make_env  # noqa: PLC0415
-        from cdqn.network import NetworkSpec, QNetwork  # noqa: PLC0415
-        from cdqn.ntk_bounds import measured_box  # noqa: PLC0415
+        from cdqn.envs import env_sizes, make_env
+        from cdqn.network import NetworkSpec, QNetwork
+        from cdqn.ntk_bounds import measured_box
 
-        conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
+        conf: Config = OmegaConf.to_object(cfg)
         conf.seed = self.conf.tune.seed
         env = make_env(conf.env)
         n_obs, n_actions = env_sizes(env)
@@ -126,22 +126,22 @@ class Study:
     def design(self, cfg: DictConfig) -> Any:
         """Synthesise and certify (raises :class:`DesignError` with the reason); None for
         Double DQN, which has no design."""
-        from cdqn.config import validate  # noqa: PLC0415
-        from cdqn.control.factory import make_controller  # noqa: PLC0415
+        from cdqn.config import validate
+        from cdqn.control.factory import make_controller
 
         if not self.designed:
             return None
-        conf: Config = OmegaConf.to_object(cfg)  # type: ignore[assignment]
+        conf: Config = OmegaConf.to_object(cfg)
         validate(conf)
         return make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
 
     # the study ---------------------------------------------------------------------
 
     def run(self) -> dict[str, Any]:
-        import optuna  # noqa: PLC0415
-        from optuna.trial import TrialState  # noqa: PLC0415
+        import optuna
+        from optuna.trial import TrialState
 
-        from cdqn.tuning.pruner import make_pruner  # noqa: PLC0415
+        from cdqn.tuning.pruner import make_pruner
 
         t = self.conf.tune
         lock = StudyLock(t.storage)
@@ -245,7 +245,7 @@ class Study:
 def _retry_interrupted(study: Any) -> None:
     """A trial a signal cut short is tried again with its specification (a killed process:
     Optuna's heartbeat fails it after the grace period and retries it)."""
-    from optuna.trial import TrialState  # noqa: PLC0415
+    from optuna.trial import TrialState
 
     retried = list(study.user_attrs.get("retried", []))
     for tr in study.get_trials(deepcopy=False):
@@ -259,7 +259,7 @@ def _retry_interrupted(study: Any) -> None:
 
 def _counts(study: Any) -> dict[str, int]:
     """Trials by ``trial_status`` (a retried trial counts once, as its retry)."""
-    from optuna.trial import TrialState  # noqa: PLC0415
+    from optuna.trial import TrialState
 
     retried = study.user_attrs.get("retried", [])
     count = {s: 0 for s in STATUSES}

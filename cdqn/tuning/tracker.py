@@ -19,10 +19,10 @@ class Tracker:
     """The study's MLflow runs: a parent per study, a child per trial (module docstring)."""
 
     def __init__(self, uri: str, experiment: str) -> None:
-        from mlflow.tracking import MlflowClient  # noqa: PLC0415
+        from mlflow.tracking import MlflowClient
 
-        from cdqn.training.sweep import ensure_store  # noqa: PLC0415
-        from cdqn.training.tracking import check_tracking  # noqa: PLC0415
+        from cdqn.training.sweep import ensure_store
+        from cdqn.training.tracking import check_tracking
 
         check_tracking(uri)  # an unusable store: one line, exit status 2
         ensure_store(uri, experiment)
@@ -38,7 +38,7 @@ class Tracker:
 
     def parent(self, study: Any, conf: Any, cfg: DictConfig) -> str:
         """The study's parent run: created at the first start, reopened on a restart."""
-        from cdqn.training.tracking import flatten, git_commit  # noqa: PLC0415
+        from cdqn.training.tracking import flatten, git_commit
 
         run_id = study.user_attrs.get("mlflow_parent")
         if run_id is not None:
@@ -57,7 +57,7 @@ class Tracker:
                                      tags=tags)  # fmt: skip
         run_id = run.info.run_id
         container = OmegaConf.to_container(cfg, resolve=True)
-        self.log_params(run_id, flatten(container))  # type: ignore[arg-type]
+        self.log_params(run_id, flatten(container))
         self.client.log_dict(run_id, container, Artifact.CONFIG)
         study.set_user_attr("mlflow_parent", run_id)
         return run_id
@@ -71,7 +71,7 @@ class Tracker:
         return run.info.run_id
 
     def log_params(self, run_id: str, params: dict[str, Any]) -> None:
-        from mlflow.entities import Param  # noqa: PLC0415
+        from mlflow.entities import Param
 
         items = [Param(k, json.dumps(v) if isinstance(v, list | dict) else str(v)[:6000])
                  for k, v in params.items()]  # fmt: skip

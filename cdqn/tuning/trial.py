@@ -32,8 +32,8 @@ def run_trials(study_obj: Any, study: Any, lock: Any) -> list[int]:
     released as soon as the trial exists.  Worker 0 then waits until no trial of another
     worker runs (a dead worker's trial is failed by the heartbeat and run again here).
     Returns the numbers of the trials this worker ran."""
-    import optuna  # noqa: PLC0415
-    from optuna.trial import TrialState  # noqa: PLC0415
+    import optuna
+    from optuna.trial import TrialState
 
     t = study_obj.conf.tune
     claimed = (TrialState.COMPLETE, TrialState.PRUNED, TrialState.RUNNING)
@@ -74,7 +74,7 @@ def train_population(
     """Train ``cfg``'s population; ``report(n, J_n)`` is called each ``interval`` episodes and
     returns True to prune.  Returns the progress, the result and the episode at which it was
     pruned (None: not pruned)."""
-    from cdqn.training.run import run_population  # noqa: PLC0415
+    from cdqn.training.run import run_population
 
     seeds = [int(cfg.seed) + i for i in range(int(cfg.train.population))]
     prog = Progress(seeds)
@@ -138,7 +138,7 @@ class Trial:
 
     def _certified(self, params: dict[str, Any]) -> DictConfig:
         """The specification's configuration, its design synthesised and certified first."""
-        import optuna  # noqa: PLC0415
+        import optuna
 
         t = self.s.conf.tune
         try:
@@ -172,7 +172,7 @@ class Trial:
 
     def _score(self, params: dict[str, Any], prog: Progress, result: Any,
                pruned_at: int | None) -> float:  # fmt: skip
-        import optuna  # noqa: PLC0415
+        import optuna
 
         ids = [r.run_id for r in result.members]
         self.trial.set_user_attr("runs", ids)
@@ -196,8 +196,8 @@ class Trial:
         if any(c is None for c in curves):
             self._end("FAILED", "failed", "a member recorded no episode", status="failed")
             raise RuntimeError("a member recorded no episode")
-        value = area(curves)  # type: ignore[arg-type]
-        final = float(np.mean([np.mean(c[-100:]) for c in curves]))  # type: ignore[index]
+        value = area(curves)
+        final = float(np.mean([np.mean(c[-100:]) for c in curves]))
         self.trial.set_user_attr("status", "complete")
         self.trial.set_user_attr("final_score", final)
         self.tracker.metrics(self.child, {Metric.OBJECTIVE: value, Metric.FINAL_SCORE: final})

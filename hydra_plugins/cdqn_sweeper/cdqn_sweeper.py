@@ -64,11 +64,11 @@ class CdqnSweeper(BasicSweeper):
         super().__init__(max_batch_size, params)
         self.max_population = max_population
 
-    def split_arguments(  # type: ignore[override]
+    def split_arguments(
         self, overrides: list[Override], max_batch_size: int | None
     ) -> list[list[list[str]]]:
         """The basic sweeper's jobs, seeds batched, in chunks of ``max_batch_size``."""
-        from cdqn.training.batching import batch_jobs  # noqa: PLC0415 (only when sweeping)
+        from cdqn.training.batching import batch_jobs
 
         (jobs,) = BasicSweeper.split_arguments(overrides, None)
         batched = batch_jobs(jobs, self.max_population, self._shape)
@@ -81,7 +81,7 @@ class CdqnSweeper(BasicSweeper):
 
     def _shape(self, overrides: list[str]) -> Any:
         """:class:`cdqn.training.batching.JobShape` of one job, composed as Hydra will."""
-        from cdqn.training.batching import JobShape, job_shape  # noqa: PLC0415
+        from cdqn.training.batching import JobShape, job_shape
 
         assert self.hydra_context is not None and self.config is not None
         try:
