@@ -168,11 +168,11 @@ def signals_after_checkpoint(monkeypatch: pytest.MonkeyPatch) -> Iterator[Callab
             for sig in signals:
                 os.kill(os.getpid(), sig)
 
-    handler = Seen(logging.INFO)
+    handler = Seen(logging.DEBUG)  # checkpoints are logged at DEBUG
     logger = logging.getLogger("cdqn")
     logger.addHandler(handler)
     level = logger.level
-    logger.setLevel(logging.INFO)
+    logger.setLevel(logging.DEBUG)
     monkeypatch.setattr(Recorder, "log_episode", log_episode)
 
     def arm(checkpoints: int, *signals: int) -> None:
