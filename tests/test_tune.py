@@ -17,7 +17,7 @@ from cdqn.tuning.objective import area, ma100, padded
 from cdqn.tuning.pruner import EpisodeMedianPruner
 from cdqn.tuning.report import summary_text
 from cdqn.tuning.settings import PrunerConfig, TuneSettings, episode_budget, warmup
-from cdqn.tuning.space import apply, fit_to_observation, sample
+from cdqn.tuning.space import apply, discount_of, fit_to_observation, sample
 from cdqn.tuning.study import Study, _with_controller
 from tests.conftest import CONF_DIR
 from tests.helpers import run_cli
@@ -65,6 +65,8 @@ def _overrides(tmp: Path, study: str, trials: int, extra: list[str] | None = Non
         "tune.pruner.startup_trials=1",
         "tune.pruner.warmup_episodes=4",
         # two feasible centres of γ_eff, the step scale around the CartPole design's
+        "tune.space.gamma_eff.horizon=false",  # the tests' centres are discounts,
+        "tune.space.gamma_eff.width=0.1",  # ranges [c - 0.05, c + 0.05]
         "tune.space.gamma_eff.low=-0.95",
         "tune.space.gamma_eff.high=-0.6",
         "tune.space.step_scale.low=0.6",
@@ -443,6 +445,22 @@ def test_a_specification_moves_the_tuned_controllers_own_target(tmp_path: Path) 
     assert list(out.weights.target.gamma_eff) == list(study.base.weights.target.gamma_eff)
 
 
+def test_the_discount_dimension_is_a_log_horizon(tmp_path: Path) -> None:
+    """The shipped ``gamma_eff`` dimension reads its number h as a signed decimal
+    log-horizon: the range written is [γ(h − 0.15), γ(h + 0.15)] with γ(h) = sign(h)(1 − 10^−|h|)."""
+    assert discount_of(2.0) == pytest.approx(0.99)
+    assert discount_of(-1.0) == pytest.approx(-0.9)
+    assert discount_of(0.0) == 0.0
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        cfg = compose("tune", overrides=[*_overrides(tmp_path, "h", 1)[:5], "controller=hinf_f"])
+    study = Study(cfg)
+    assert study.space["gamma_eff"].horizon
+    out = apply(study.base, study.space, {"gamma_eff": 2.0})
+    lo, hi = out.weights.target.gamma_eff
+    assert (lo, hi) == pytest.approx((1 - 10**-1.85, 1 - 10**-2.15))
+    assert apply(study.base, study.space, {"gamma_eff": -2.0}).weights.target.gamma_eff[1] < -0.98
+
+
 def test_conditional_dimensions_are_sampled_only_when_their_condition_holds() -> None:
     """``eps_dec_episode`` is sampled with ``eps_schedule=episode`` only, ``eps_dec_action``
     with ``random_action`` only; both write ``train.eps_dec``."""
@@ -505,8 +523,8 @@ def test_both_agents_tuned_alike_compared_and_their_presets_reproduce_the_settin
         "tune.eval_seeds=2", "tune.pruner.kind=none", "controller.learning_starts=50",
     ]  # fmt: skip
     _store(f"sqlite:///{tmp_path / 'mlflow.db'}", "cdqn-tune", tmp_path)
-    design = _study([*common, "controller=hinf_f", "tune.space.gamma_eff.low=-0.95",
-                     "tune.space.gamma_eff.high=-0.6"])  # fmt: skip
+    design = _study([*common, "controller=hinf_f", "tune.space.gamma_eff.low=-1.5",
+                     "tune.space.gamma_eff.high=-0.5"])  # fmt: skip
     ddqn = _study([*common, "controller=ddqn"])
     shared = {"normalize", "eps_schedule"}
     for summary in (design, ddqn):

@@ -25,7 +25,12 @@ class ParamSpec:
     magnitude, e.g. ``weights.{controller}.w_p.num``).  Otherwise a number in [low, high]
     (``integer``: a whole one).  ``{controller}`` in ``path`` is the controller's name.
     ``when``: the dimension is sampled only in trials whose other dimensions take these
-    values (``{eps_schedule: episode}``); other trials leave ``path`` as configured."""
+    values (``{eps_schedule: episode}``); other trials leave ``path`` as configured.
+    ``horizon``: the number h (and ``width``) is a signed decimal log-horizon, written as the
+    discount γ(h) = sign(h)·(1 − 10^(−|h|)), so that 1/(1 − |γ|) = 10^|h| steps
+    (:func:`cdqn.tuning.space.discount_of`); with ``width`` the range is
+    [γ(h − width/2), γ(h + width/2)].  Uniform in h, the discounts near ±1, where a goal task
+    learns, are as likely as those near 0."""
 
     path: str = "???"
     low: float | None = None
@@ -37,6 +42,7 @@ class ParamSpec:
     integer: bool = False
     choices: list[Any] | None = None
     when: dict[str, Any] | None = None
+    horizon: bool = False
 
 
 @dataclass

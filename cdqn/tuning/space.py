@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import logging
+import math
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, read_write
@@ -46,13 +47,22 @@ def apply(cfg: DictConfig, space: dict[str, ParamSpec], params: dict[str, Any]) 
             p = space[key]
             path = _own_target_path(p.path.format(controller=name), out.weights, name)
             if p.width is not None:
-                value = [float(value) - p.width / 2, float(value) + p.width / 2]
+                lo, hi = float(value) - p.width / 2, float(value) + p.width / 2
+                value = [discount_of(lo), discount_of(hi)] if p.horizon else [lo, hi]
+            elif p.horizon:
+                value = discount_of(float(value))
             elif p.choices is None and p.scale:
                 node = OmegaConf.select(out, path)
                 plain = OmegaConf.to_container(node) if OmegaConf.is_config(node) else node
                 value = _scaled(plain, float(value))
             OmegaConf.update(out, path, value, merge=False)
     return out
+
+
+def discount_of(h: float) -> float:
+    """The discount of the signed decimal log-horizon ``h`` (:class:`ParamSpec`):
+    γ(h) = sign(h)·(1 − 10^(−|h|)); γ(0) = 0, γ(±2) = ±0.99, and γ is increasing in h."""
+    return math.copysign(1.0 - 10.0 ** (-abs(h)), h)
 
 
 def fit_to_observation(
