@@ -447,7 +447,8 @@ def test_a_specification_moves_the_tuned_controllers_own_target(tmp_path: Path) 
 
 def test_the_discount_dimension_is_a_log_horizon(tmp_path: Path) -> None:
     """The shipped ``gamma_eff`` dimension reads its number h as a signed decimal
-    log-horizon: the range written is [γ(h − 0.15), γ(h + 0.15)] with γ(h) = sign(h)(1 − 10^−|h|)."""
+    log-horizon: the range written is [γ(h − 0.15), γ(h + 0.15)],
+    γ(h) = sign(h)(1 − 10^−|h|)."""
     assert discount_of(2.0) == pytest.approx(0.99)
     assert discount_of(-1.0) == pytest.approx(-0.9)
     assert discount_of(0.0) == 0.0
