@@ -81,10 +81,9 @@ class ObservationScale(gym.ObservationWrapper):
         low, high = space.low.astype(np.float64), space.high.astype(np.float64)
         w = np.ones(low.shape) if widths is None else np.asarray(widths, dtype=np.float64)
         finite = np.isfinite(low) & np.isfinite(high) & (high > low)
-        self.offset = np.where(finite, 0.5 * (low + high), 0.0).astype(space.dtype)
-        self.scale = np.where(finite, 2.0 * w / np.where(finite, high - low, 1.0), 1.0).astype(
-            space.dtype
-        )
+        lo, hi = np.where(finite, low, -1.0), np.where(finite, high, 1.0)  # no inf arithmetic
+        self.offset = np.where(finite, 0.5 * (lo + hi), 0.0).astype(space.dtype)
+        self.scale = np.where(finite, 2.0 * w / (hi - lo), 1.0).astype(space.dtype)
         self.observation_space = Box(
             np.where(finite, -w, low).astype(space.dtype),
             np.where(finite, w, high).astype(space.dtype),
