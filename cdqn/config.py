@@ -442,6 +442,9 @@ TARGET_FIELDS = ("gamma_eff", "step_scale", "rho_cap")
 """The ranges of a learning target (:class:`LearningTarget`)."""
 TARGET_CONTROLLERS = ("h2", "hinf", "hinf_f")
 """The controllers whose designs keep a learning target (:class:`ControllerTargets`)."""
+BOXED_CONTROLLERS = ("hinf", "hinf_f")
+"""The designs certified over an NTK box (the gain-scheduled H2 design sees Θ1, Θ2 at every
+step instead)."""
 
 
 def target_key(weights: Any, controller: str, name: str) -> str:

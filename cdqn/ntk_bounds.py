@@ -37,7 +37,7 @@ import gymnasium as gym
 import numpy as np
 
 from cdqn.agents.base import EpsilonGreedy
-from cdqn.config import Config, TrainConfig
+from cdqn.config import BOXED_CONTROLLERS, Config, TrainConfig
 from cdqn.control.box import NTKBox
 from cdqn.control.errors import DesignError
 from cdqn.envs import make_env
@@ -150,7 +150,7 @@ def measured_box(conf: Config, net: QNetwork) -> NTKBox | None:
     The rollout uses its own environment instance and random stream and does not change
     the network, so the run's own random streams are untouched."""
     ctrl = conf.controller
-    if ctrl.design != "synthesize" or ctrl.name not in ("hinf", "hinf_f"):
+    if ctrl.design != "synthesize" or ctrl.name not in BOXED_CONTROLLERS:
         return None
     syn = ctrl.synthesis
     if syn.ntk_bounds == "config":

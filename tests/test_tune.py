@@ -563,3 +563,14 @@ def test_the_pruner_waits_a_quarter_of_the_episodes_by_default() -> None:
     assert warmup(PrunerConfig(), 600) == 150
     assert warmup(PrunerConfig(), 100) == 50
     assert warmup(PrunerConfig(warmup_episodes=7), 600) == 7
+
+
+def test_a_gain_scheduled_design_is_specified_without_a_box(tmp_path: Path) -> None:
+    """The H2 design sees Θ1, Θ2 at every step and is certified on no box: a study of it
+    with the tuner's measured box leaves theta_bounds as configured."""
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        cfg = compose("tune", overrides=[*_overrides(tmp_path, "h2", 1)[:5], "controller=h2"])
+    study = Study(cfg)
+    out = study.specified({"gamma_eff": 2.0}, seed=100, population=1)
+    assert out.controller.name == "h2" and not study.boxes
+    assert list(out.weights.theta_bounds.ratio) == list(cfg.weights.theta_bounds.ratio)

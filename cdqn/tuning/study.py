@@ -17,7 +17,13 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, read_write
 
-from cdqn.config import TARGET_CONTROLLERS, Config, ConfigError, resolve_tracking_uri
+from cdqn.config import (
+    BOXED_CONTROLLERS,
+    TARGET_CONTROLLERS,
+    Config,
+    ConfigError,
+    resolve_tracking_uri,
+)
 from cdqn.training.interrupt import GracefulStop
 from cdqn.tuning.evaluation import evaluate, write_comparison
 from cdqn.tuning.presets import write_preset
@@ -93,7 +99,7 @@ class Study:
             cfg.seed = seed
             cfg.train.population = population
             syn = cfg.controller.synthesis
-            if self.designed and syn.ntk_bounds == "measured":
+            if self.agent in BOXED_CONTROLLERS and syn.ntk_bounds == "measured":
                 key = OmegaConf.to_yaml({"env": cfg.env, "net": cfg.network, "q": syn.quantiles})
                 if key not in self.boxes:
                     self.boxes[key] = self._measure(cfg)
