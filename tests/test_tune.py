@@ -496,6 +496,18 @@ def test_radial_features_are_offered_only_where_the_observation_allows_them() ->
     assert "rbf" not in fit_to_observation(space, bounded=True, n_features=7, max_features=4096)
 
 
+@pytest.mark.parametrize(("env", "choices"), [("acrobot", None), ("mountaincar", [None, 4, 6])])
+def test_a_study_offers_radial_features_within_its_feature_limit(
+    tmp_path: Path, env: str, choices: list | None
+) -> None:
+    """tune.max_rbf_features (256) keeps Acrobot's 6 bounded features from 4^6 = 4096
+    inputs; Mountain car's 2 features get 4 x 4 or 6 x 6."""
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        over = [*_overrides(tmp_path, "rbf", 1)[:5], f"env={env}", "controller=ddqn"]
+        study = Study(compose("tune", overrides=over))
+    assert (study.space["rbf"].choices if "rbf" in study.space else None) == choices
+
+
 def test_the_episode_budget_follows_the_environments_cap() -> None:
     t = TuneSettings(steps=300_000, min_episodes=100, max_episodes=2000)
     assert episode_budget(t, 500) == 600

@@ -85,6 +85,9 @@ class TuneSettings:
     """Fresh seeds of the final evaluation of the best specification (0: none)."""
     eval_seed: int = 1000
     """First seed of the evaluation; its seeds must not overlap the trials' seeds."""
+    max_rbf_features: int = 256
+    """The radial-basis dimension offers n centres per feature only where n^d stays within
+    this: the network's first layer, and the time of a trial, grow with the features."""
     eval_processes: int = 0
     """Processes the evaluation's seeds are split over, trained side by side (0: one per
     core)."""
@@ -148,6 +151,7 @@ def validate_tune(conf: TuneConfig) -> None:
                            ("max_episodes", t.max_episodes, t.min_episodes),
                            ("eval_seeds", t.eval_seeds, 0),
                            ("eval_processes", t.eval_processes, 0),
+                           ("max_rbf_features", t.max_rbf_features, 1),
                            ("pruner.interval", t.pruner.interval, 1),
                            ("worker", t.worker, 0)):  # fmt: skip
         if value < lo:

@@ -79,13 +79,14 @@ class Study:
 
         from cdqn.envs import RadialFeatures, make_env
 
+        most = min(self.conf.tune.max_rbf_features, RadialFeatures.MAX_FEATURES)
         env_cfg = copy.deepcopy(self.conf.env)
         env_cfg.rbf_centres = None
         env = make_env(env_cfg)
         box = env.observation_space
         bounded = bool(np.all(np.isfinite(box.low)) and np.all(np.isfinite(box.high)))
         env.close()
-        return fit_to_observation(space, bounded, int(box.shape[0]), RadialFeatures.MAX_FEATURES)
+        return fit_to_observation(space, bounded, int(box.shape[0]), most)
 
     # the configuration of a specification -----------------------------------------
 
