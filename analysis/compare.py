@@ -70,9 +70,8 @@ def build_group(
     for key in BUDGET if not finished.empty else ():
         failed = failed[setting_values(failed, key).isin(set(setting_values(finished, key)))]
     counts = failed.groupby(["env", "controller"]).size()
-    return Compared(
-        label, finished, table, {(str(e), str(c)): int(n) for (e, c), n in counts.items()}
-    )
+    failures = {(str(e), str(c)): int(n) for (e, c), n in counts.items()}
+    return Compared(label, finished, table, failures)
 
 
 def present_runs(present: pd.DataFrame, compared: pd.DataFrame) -> pd.DataFrame:
@@ -151,11 +150,9 @@ def research_markdown(research: Compared, present: tbl.Table | None) -> str:
         cells = []
         for env in t.envs:
             row = tbl.cell(t, ctrl, env)
-            now = None if present is None else tbl.cell(present, ctrl, env)
+            now, failed = _present(present, (env, ctrl)), research.failed.get((env, ctrl), 0)
             paper = PAPER_SCORES.get((ctrl, env))
-            text = (
-                f"{score_text(row, research.failed.get((env, ctrl), 0))} ({change_text(row, now)})"
-            )
+            text = f"{score_text(row, failed)} ({change_text(row, now)})"
             text += f"; present {score_text(now)}"
             text += f"; paper {paper.mean:.2f} ± {paper.std:.2f}" if paper else "; paper —"
             cells.append(text)
@@ -166,7 +163,7 @@ def research_markdown(research: Compared, present: tbl.Table | None) -> str:
 def touched_cells(groups: list[Compared]) -> list[Cell]:
     """Every cell any group has runs in, in the paper table's order (environment, then
     controller)."""
-    cells = {(str(e), str(c)) for g in groups for e, c in zip(g.table.summary["env"], g.table.summary["controller"], strict=True)}  # fmt: skip
+    cells = {cell for g in groups for cell in _cells(g.table.summary)}
     cells |= {cell for g in groups for cell in g.failed}
     envs = ordered({e for e, _ in cells}, ENV_ORDER)
     ctrls = ordered({c for _, c in cells}, CONTROLLER_ORDER)
@@ -187,12 +184,10 @@ def ablation_markdown(groups: list[Compared], present: tbl.Table | None) -> str:
             if row is None and not failed:
                 texts.append("")
                 continue
-            now = None if present is None else tbl.cell(present, ctrl, env)
+            now = _present(present, (env, ctrl))
             texts.append(f"{score_text(row, failed)} ({change_text(row, now)})")
         lines.append(f"| {g.label} | " + " | ".join(texts) + " |")
-    present_row = [
-        score_text(None if present is None else tbl.cell(present, c, e)) for e, c in cells
-    ]
+    present_row = [score_text(_present(present, cell)) for cell in cells]
     lines.append("| present table | " + " | ".join(present_row) + " |")
     return "\n".join(lines)
 
@@ -207,15 +202,25 @@ def long_table(groups: list[Compared], present: tbl.Table | None) -> pd.DataFram
             continue
         s = g.table.summary.copy()
         s.insert(0, "label", g.label)
-        s["failed"] = [
-            g.failed.get((e, c), 0) for e, c in zip(s["env"], s["controller"], strict=True)
-        ]
-        now = [None if present is None else tbl.cell(present, c, e) for e, c in zip(s["env"], s["controller"], strict=True)]  # fmt: skip
+        s["failed"] = [g.failed.get(cell, 0) for cell in _cells(s)]
+        now = [_present(present, cell) for cell in _cells(s)]
         for key in ("mean", "std", "n_solved", "n_seeds"):
             s[f"present_{key}"] = [np.nan if r is None else r[key] for r in now]
         s["change"] = s["mean"] - s["present_mean"]
         frames.append(s)
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+
+
+def _cells(summary: pd.DataFrame) -> list[Cell]:
+    """The (environment, controller) of every row of a summary."""
+    if summary.empty:
+        return []
+    return [(str(e), str(c)) for e, c in zip(summary["env"], summary["controller"], strict=True)]
+
+
+def _present(present: tbl.Table | None, cell: Cell) -> pd.Series | None:
+    """The present table's row of ``cell`` (``None`` without one)."""
+    return None if present is None else tbl.cell(present, cell[1], cell[0])
 
 
 NOTE = (

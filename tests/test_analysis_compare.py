@@ -7,7 +7,7 @@ the research preset and three ablations, one of whose runs diverges (FAILED).
 
 from __future__ import annotations
 
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +26,8 @@ from tests.conftest import CONF_DIR
 
 SWEEPS = CONF_DIR.parent / "sweeps"
 ABLATIONS = sorted(p.stem for p in (SWEEPS / "ablation").glob("*.yaml"))
-CELLS = [(e, c) for e in ("cartpole", "acrobot", "mountaincar") for c in ("h2", "hinf", "hinf_f", "ddqn")]  # fmt: skip
+ENVS, AGENTS = ("cartpole", "acrobot", "mountaincar"), ("h2", "hinf", "hinf_f", "ddqn")
+CELLS = [(e, c) for e in ENVS for c in AGENTS]
 NOT_SETTINGS = ("extra.", "tracking.")
 """Keys an ablation sets that do not change what a run learns."""
 TINY = ["network.width=16", "train.episodes=3", "train.progress=false", "train.population=2"]
@@ -43,7 +44,7 @@ def compose_sweep(name: str, overrides: list[str], hydra: bool = True) -> DictCo
         )
 
 
-@lru_cache(maxsize=None)
+@cache
 def _job(name: str, overrides: tuple[str, ...]) -> dict[str, object]:
     """One job's resolved settings, flattened, after checking that it is a valid run."""
     cfg = compose_sweep(name, list(overrides), hydra=False)
