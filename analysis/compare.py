@@ -184,8 +184,8 @@ def ablation_markdown(groups: list[Compared], present: tbl.Table | None) -> str:
             if row is None and not failed:
                 texts.append("")
                 continue
-            now = _present(present, (env, ctrl))
-            texts.append(f"{score_text(row, failed)} ({change_text(row, now)})")
+            change = "" if row is None else f" ({change_text(row, _present(present, (env, ctrl)))})"
+            texts.append(score_text(row, failed) + change)
         lines.append(f"| {g.label} | " + " | ".join(texts) + " |")
     present_row = [score_text(_present(present, cell)) for cell in cells]
     lines.append("| present table | " + " | ".join(present_row) + " |")
