@@ -4,6 +4,8 @@
     python analysis/make_table.py --tracking-uri http://127.0.0.1:5000 --experiment cdqn
     python analysis/make_table.py --compare-paper --out tables/ --threshold acrobot=-100
     python analysis/make_table.py --where train.episodes=2000 --where network.width=2500
+    python analysis/make_table.py --research     # the research preset beside the present table
+    python analysis/make_table.py --ablation     # each departure undone, beside the present table
 
 Runs that differ in a setting that changes results (:data:`analysis.runs.SETTINGS`) are
 never averaged together: each group of settings gets its own table, headed by the settings
@@ -14,7 +16,9 @@ names every shared setting that differs between the agents of a column
 ``run_scores.csv`` (the CSVs with a ``settings`` column) and ``settings.md`` (each shared
 setting's value per environment and agent) into ``--out``.  ``--claims`` adds the paper's
 claims, each with its statistic and whether it holds (:mod:`analysis.claims`), on stdout
-and in ``claims.md``.
+and in ``claims.md``.  ``--research`` and ``--ablation`` set the runs of
+``sweeps/research.yaml`` or ``sweeps/ablation/*.yaml`` beside the present table
+(:mod:`analysis.compare`) and write ``research.{md,csv}`` or ``ablation.{md,csv}``.
 """
 
 from __future__ import annotations
@@ -30,10 +34,11 @@ if __package__ in (None, ""):  # run as a script: make the repository root impor
 import pandas as pd
 
 from analysis import claims as cl
+from analysis import compare as cmp
 from analysis import table as tbl
 from analysis.cli import add_store_arguments, note, open_store, select_runs
 from analysis.columns import caption, settings_table
-from analysis.runs import RunStore, environment, where
+from analysis.runs import RunStore, WhereError, comparable_runs, environment, where
 
 
 def parse_thresholds(items: list[str]) -> dict[str, float]:
@@ -69,7 +74,64 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="the paper's claims, each with its statistic and whether it holds",
     )
+    kind = parser.add_mutually_exclusive_group()
+    kind.add_argument(
+        "--research",
+        action="store_true",
+        help="the research preset's runs (sweeps/research.yaml) beside the present table "
+        "(--experiment) and the paper's numbers",
+    )
+    kind.add_argument(
+        "--ablation",
+        action="store_true",
+        help="one row per departure undone (sweeps/ablation/*.yaml), its cells beside the "
+        "present table (--experiment)",
+    )
+    parser.add_argument(
+        "--research-experiment", default="cdqn-research", help="experiment of --research"
+    )
+    parser.add_argument(
+        "--ablation-experiment", default="cdqn-ablation", help="experiment of --ablation"
+    )
     return parser
+
+
+def _selected(store: RunStore, statuses: list[str], conditions: list[str]) -> pd.DataFrame:
+    """The store's runs of ``statuses`` that match ``--where`` (none if no run matches)."""
+    runs = store.runs(statuses)
+    runs = runs.assign(env=environment(runs))
+    try:
+        return where(runs, conditions)
+    except WhereError:
+        return runs.iloc[:0]
+
+
+def compared_groups(
+    store: RunStore, args: argparse.Namespace, thresholds: dict[str, float]
+) -> list[cmp.Compared]:
+    """The research preset's groups of settings, or the ablations, as tables."""
+    finished = select_runs(store, args.where) if args.research else store.require_runs()
+    failed = _selected(store, ["FAILED"], args.where)
+    if args.research:
+        groups = [(s or "research", g, failed) for s, g in finished.groupby("settings")]
+    else:
+        groups = cmp.ablation_groups(_selected(store, list(store.statuses), args.where), failed)
+    return [cmp.build_group(store, label, fin, fail, thresholds) for label, fin, fail in groups]
+
+
+def present_table(
+    args: argparse.Namespace, compared: list[cmp.Compared], thresholds: dict[str, float]
+) -> tbl.Table | None:
+    """The present table beside ``compared``: the runs of ``--experiment`` of the same cells
+    and budget (:func:`analysis.compare.present_runs`); ``None`` when it has none."""
+    store = RunStore(args.tracking_uri, args.experiment, statuses=args.status or ("FINISHED",))
+    runs, _ = comparable_runs(_selected(store, list(store.statuses), args.where))
+    runs = cmp.present_runs(runs, pd.concat([g.runs for g in compared]))
+    if runs.empty:
+        note(f"note: no present runs of these cells in {store.describe()}: no changes shown")
+        return None
+    episodes = store.episodes(tbl.TABLE_METRICS, runs)
+    return tbl.build(episodes, runs, thresholds) if not episodes.empty else None
 
 
 def claims_text(
@@ -86,9 +148,37 @@ def claims_text(
     return "Claims (analysis/claims.py):\n\n" + "\n".join(lines)
 
 
+def comparison(args: argparse.Namespace, thresholds: dict[str, float]) -> int:
+    """``--research`` or ``--ablation``: the tables of :mod:`analysis.compare`, on stdout and
+    in ``--out``."""
+    start = time.perf_counter()
+    name = "research" if args.research else "ablation"
+    experiment = args.research_experiment if args.research else args.ablation_experiment
+    store = open_store(argparse.Namespace(**{**vars(args), "experiment": experiment}))
+    groups = compared_groups(store, args, thresholds)
+    present = present_table(args, groups, thresholds)
+    if args.research:
+        blocks = [f"{g.label}\n\n{cmp.research_markdown(g, present)}" for g in groups]
+        text = "\n\n".join(blocks) if len(groups) > 1 else cmp.research_markdown(groups[0], present)
+    else:
+        text = cmp.ablation_markdown(groups, present)
+    markdown = text + "\n\n" + cmp.note_text(args.experiment)
+    print(markdown)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / f"{name}.md").write_text(markdown + "\n")
+    cmp.long_table(groups, present).to_csv(args.out / f"{name}.csv", index=False)
+    note(
+        f"{sum(len(g.runs) for g in groups)} runs from {store.describe()} in "
+        f"{time.perf_counter() - start:.1f} s; wrote {args.out}/{name}.{{md,csv}}"
+    )
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     thresholds = parse_thresholds(args.threshold)
+    if args.research or args.ablation:
+        return comparison(args, thresholds)
     start = time.perf_counter()
     store = open_store(args)
     runs = select_runs(store, args.where)

@@ -189,8 +189,17 @@ def missing_lines(table: Table, counted: str = "FINISHED") -> list[str]:
     return lines
 
 
-def _cell(table: Table, ctrl: str, env: str) -> pd.Series | None:
+def empty() -> Table:
+    """The table of no runs."""
+    none = pd.DataFrame({"run_id": []})
+    return Table(run_scores(none, none), pd.DataFrame(), [], [])
+
+
+def cell(table: Table, ctrl: str, env: str) -> pd.Series | None:
+    """The summary row of one (controller, environment) cell, ``None`` if it has no runs."""
     s = table.summary
+    if s.empty:
+        return None
     hit = s[(s["controller"] == ctrl) & (s["env"] == env)]
     return None if hit.empty else hit.iloc[0]
 
@@ -210,7 +219,7 @@ def to_markdown(table: Table, compare_paper: bool = False) -> str:
     for ctrl in table.controllers:
         cells = []
         for env in table.envs:
-            row = _cell(table, ctrl, env)
+            row = cell(table, ctrl, env)
             if row is None:
                 cells.append("—")
                 continue
@@ -276,7 +285,7 @@ def to_latex(table: Table, compare_paper: bool = False, caption: str = "") -> st
     for ctrl in table.controllers:
         scores, extras = [], []
         for env in table.envs:
-            row = _cell(table, ctrl, env)
+            row = cell(table, ctrl, env)
             if row is None:
                 scores.append("--")
                 extras.append("")
