@@ -22,6 +22,19 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
 
+def _conf_dir() -> Path:
+    """The Hydra config folder: ``cdqn/conf`` in an installed wheel (pyproject.toml copies
+    the repository's ``conf/`` there), else ``conf/`` beside the package (a clone, an
+    editable install)."""
+    package = Path(__file__).resolve().parent
+    installed = package / "conf"
+    return installed if installed.is_dir() else package.parent / "conf"
+
+
+CONF_DIR = _conf_dir()
+"""The Hydra config folder of every entry point (``python -m cdqn.train``, ...)."""
+
+
 class ConfigError(ValueError):
     """A configuration value cdqn cannot run with; the message names key, value and what
     is allowed."""
