@@ -43,6 +43,7 @@ from omegaconf.errors import (
 )
 
 from cdqn.config import (
+    CONF_DIR,
     Config,
     ConfigError,
     EnvConfig,
@@ -51,7 +52,6 @@ from cdqn.config import (
     validate_evaluate,
 )
 
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 EXIT_CONFIG = 2
 """Exit status of a command refused for its configuration."""
 MAX_COMPOSITIONS = 64

@@ -4,16 +4,35 @@ One dataclass per Hydra config group, registered in Hydra's ConfigStore as
 ``base_config``; the YAML files under ``conf/`` select and override, this schema
 types and validates them.  Each field carries a one-line description with its unit and,
 where there is one, the paper's symbol.
+
+Each group's dataclass has a ``check()`` that returns its problems, one line each naming
+the key, the value and what is allowed (``network.width=0: must be a positive integer``);
+:func:`validate` gathers those of every group (:meth:`Config.check`) into one
+:class:`ConfigError`.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
+
+
+def _conf_dir() -> Path:
+    """The Hydra config folder: ``cdqn/conf`` in an installed wheel (pyproject.toml copies
+    the repository's ``conf/`` there), else ``conf/`` beside the package (a clone, an
+    editable install)."""
+    package = Path(__file__).resolve().parent
+    installed = package / "conf"
+    return installed if installed.is_dir() else package.parent / "conf"
+
+
+CONF_DIR = _conf_dir()
+"""The Hydra config folder of every entry point (``python -m cdqn.train``, ...)."""
 
 
 class ConfigError(ValueError):
@@ -71,6 +90,25 @@ class EnvConfig:
     """What lowers ε by eps_dec, taken by train.eps_schedule: ``random_action`` (research
     code), ``step`` (every step: linear in steps) or ``episode`` (every episode start)."""
 
+    def check(self) -> list[str]:
+        """Problems of the ``env`` group, one line each (empty: none).  The observation
+        features (indices, scale, radial grid) are checked against the environment itself
+        when it is made (:func:`cdqn.envs.make_env`)."""
+        centres, cap = self.rbf_centres, self.max_episode_steps
+        return failed(
+            [
+                (
+                    centres is None or centres >= 2,
+                    f"env.rbf_centres={centres}: must be >= 2 (centres per feature) or null",
+                ),
+                (self.rbf_width > 0, f"env.rbf_width={self.rbf_width}: must be > 0"),
+                (
+                    cap is None or cap > 0,
+                    f"env.max_episode_steps={cap}: must be > 0 or null",
+                ),
+            ]
+        )
+
 
 @dataclass
 class NetworkConfig:
@@ -78,6 +116,18 @@ class NetworkConfig:
     """Hidden units of the two-layer ReLU Q-network (paper: 2500)."""
     dtype: str = "float64"
     """Floating-point type of the parameters: float64 or float32."""
+
+    def check(self) -> list[str]:
+        """Problems of the ``network`` group, one line each (empty: none)."""
+        return failed(
+            [
+                (self.width > 0, f"network.width={self.width}: must be a positive integer"),
+                (
+                    self.dtype in ("float64", "float32"),
+                    f"network.dtype={self.dtype!r}: allowed float64, float32",
+                ),
+            ]
+        )
 
 
 @dataclass
@@ -87,6 +137,28 @@ class TransferFunctionConfig:
     den: list[float] = field(default_factory=lambda: [1.0])
     """Denominator coefficients, highest power of s first."""
 
+    def is_proper(self) -> bool:
+        """A non-zero denominator of degree >= the numerator's (leading zeros dropped)."""
+        num = [float(c) for c in self.num]
+        den = [float(c) for c in self.den]
+        while num and num[0] == 0.0:
+            num.pop(0)
+        while den and den[0] == 0.0:
+            den.pop(0)
+        return bool(den) and len(num) <= len(den)
+
+    def check(self, key: str) -> list[str]:
+        """Problems of the weight at ``key`` (e.g. ``weights.hinf.w_p``)."""
+        return failed(
+            [
+                (
+                    self.is_proper(),
+                    f"{key}=num {list(self.num)} / den {list(self.den)}: not a proper "
+                    "transfer function (need a non-zero denominator of degree >= the numerator's)",
+                )
+            ]
+        )
+
 
 @dataclass
 class H2Weights:
@@ -94,6 +166,18 @@ class H2Weights:
     """Diagonal of W_x, state weight on [Q1, Q2, x_e] (paper Sec. 4.1)."""
     w_c: float = 20000.0
     """W_c, control weight (paper Sec. 4.1)."""
+
+    def check(self, key: str) -> list[str]:
+        """Problems of the H2 weights, one line each (empty: none)."""
+        return failed(
+            [
+                (
+                    len(self.w_x) == 3 and all(w >= 0 for w in self.w_x),
+                    f"{key}.w_x={list(self.w_x)}: need 3 non-negative diagonal entries",
+                ),
+                (self.w_c > 0, f"{key}.w_c={self.w_c}: must be > 0"),
+            ]
+        )
 
 
 @dataclass
@@ -109,6 +193,13 @@ class HinfWeights:
     w_qhat: TransferFunctionConfig = field(default_factory=TransferFunctionConfig)
     """W_Q̂(s), weight on the exogenous target Q̂2."""
 
+    def check(self, key: str) -> list[str]:
+        """Problems of the H∞ weights at ``key`` (``weights.hinf`` or ``weights.hinf_f``)."""
+        problems: list[str] = []
+        for name in ("w_p", "w_u", "w_r", "w_qhat"):
+            problems += getattr(self, name).check(f"{key}.{name}")
+        return problems + failed([(self.w_delta > 0, f"{key}.w_delta={self.w_delta}: must be > 0")])
+
 
 @dataclass
 class ThetaBounds:
@@ -119,6 +210,27 @@ class ThetaBounds:
     nominal: list[float] | None = None
     """Nominal (Θ1, Θ2) of the design plant (None: the box centre, √(Θ1_lo·Θ1_hi) and the
     mid ratio; the paper's CartPole design used (220, 222))."""
+
+    def check(self, key: str) -> list[str]:
+        """Problems of the NTK box, one line each (empty: none)."""
+        checks: list[tuple[bool, str]] = []
+        for name in ("theta1", "ratio"):
+            rng = list(getattr(self, name))
+            checks.append(
+                (
+                    len(rng) == 2 and 0 < rng[0] <= rng[1],
+                    f"{key}.{name}={rng}: need [lower, upper] with 0 < lower <= upper",
+                )
+            )
+        if self.nominal is not None:
+            nominal = list(self.nominal)
+            checks.append(
+                (
+                    len(nominal) == 2 and all(v > 0 for v in nominal),
+                    f"{key}.nominal={nominal}: need [Θ1, Θ2], both > 0, or null",
+                )
+            )
+        return failed(checks)
 
 
 @dataclass
@@ -152,6 +264,10 @@ class LearningTarget:
     """h2 only (scheduled on Θ1, Θ2): cap γ_eff at rho_cap/ρ at each step, ρ = Θ2/Θ1
     (0 < rho_cap < 1; null: no cap)."""
 
+    def check(self, key: str) -> list[str]:
+        """Problems of the ranges, one line each (empty: none)."""
+        return _target_problems(key, self.gamma_eff, self.step_scale)
+
 
 @dataclass
 class OwnTarget:
@@ -162,6 +278,10 @@ class OwnTarget:
     step_scale: list[float] | None = None
     rho_cap: float | None = None
 
+    def check(self, key: str) -> list[str]:
+        """Problems of the ranges set here (``key``: ``weights.controller_target.<name>``)."""
+        return _target_problems(key, self.gamma_eff, self.step_scale)
+
 
 @dataclass
 class ControllerTargets:
@@ -170,6 +290,13 @@ class ControllerTargets:
     h2: OwnTarget = field(default_factory=OwnTarget)
     hinf: OwnTarget = field(default_factory=OwnTarget)
     hinf_f: OwnTarget = field(default_factory=OwnTarget)
+
+    def check(self, key: str) -> list[str]:
+        """Problems of every controller's own ranges, one line each (empty: none)."""
+        problems: list[str] = []
+        for name in TARGET_CONTROLLERS:
+            problems += getattr(self, name).check(f"{key}.{name}")
+        return problems
 
 
 @dataclass
@@ -188,6 +315,22 @@ class ReplayConfig:
     truncated (the time limit), any."""
     min_return: float | None = None
     """Only episodes whose return is at least this qualify (null: no bound)."""
+
+    def check(self, key: str) -> list[str]:
+        """Problems of the replay settings, one line each (empty: none)."""
+        return failed(
+            [
+                (self.repeats >= 0, f"{key}.repeats={self.repeats}: must be >= 0 (0: off)"),
+                (
+                    self.last is None or self.last >= 1,
+                    f"{key}.last={self.last}: must be >= 1 or null (the whole episode)",
+                ),
+                (
+                    self.when in REPLAY_WHEN,
+                    f"{key}.when={self.when!r}: allowed {', '.join(REPLAY_WHEN)}",
+                ),
+            ]
+        )
 
 
 @dataclass
@@ -241,6 +384,19 @@ class WeightsConfig:
     ddqn: DDQNSettings = field(default_factory=DDQNSettings)
     """Double DQN on this environment (controller=ddqn takes controller.lr,
     controller.target_update, env.normalize and env.rbf_centres from here)."""
+
+    def check(self) -> list[str]:
+        """Problems of the ``weights`` group, one line each (empty: none): each weight set,
+        the learning targets, the replay and the NTK box."""
+        return [
+            *self.h2.check("weights.h2"),
+            *self.hinf.check("weights.hinf"),
+            *self.hinf_f.check("weights.hinf_f"),
+            *self.target.check("weights.target"),
+            *self.controller_target.check("weights.controller_target"),
+            *self.replay.check("weights.replay"),
+            *self.theta_bounds.check("weights.theta_bounds"),
+        ]
 
 
 @dataclass
@@ -329,6 +485,66 @@ class ControllerConfig:
     lr: float | None = None
     """DDQN: α of its SGD step; null: train.lr (controller=ddqn sets weights.ddqn.lr)."""
 
+    def check(self) -> list[str]:
+        """Problems of the ``controller`` group, one line each (empty: none)."""
+        name = self.name
+        return failed(
+            [
+                (
+                    name in CONTROLLERS,
+                    f"controller.name={name!r}: allowed {', '.join(CONTROLLERS)}",
+                ),
+                (
+                    self.design in ("paper", "synthesize"),
+                    f"controller.design={self.design!r}: allowed paper, synthesize",
+                ),
+                (
+                    self.discretization in ("zoh", "tustin", "euler"),
+                    f"controller.discretization={self.discretization!r}: "
+                    "allowed zoh, tustin, euler",
+                ),
+                (
+                    self.h2_gain_map in ("paper", "research"),
+                    f"controller.h2_gain_map={self.h2_gain_map!r}: allowed paper, research",
+                ),
+                *self._ddqn_checks(),
+            ]
+        )
+
+    def _ddqn_checks(self) -> list[tuple[bool, str]]:
+        """Double DQN's settings; its lr and discount are refused on the other agents."""
+        return [
+            (
+                self.learning_starts >= 0,
+                f"controller.learning_starts={self.learning_starts}: must be >= 0",
+            ),
+            (
+                0 < self.batch_size <= self.buffer_size,
+                f"controller.batch_size={self.batch_size}, controller.buffer_size="
+                f"{self.buffer_size}: need 0 < batch_size <= buffer_size",
+            ),
+            (
+                self.target_update > 0 and self.train_freq > 0,
+                "controller.target_update and controller.train_freq must be > 0",
+            ),
+            (
+                self.discount is None or 0 < self.discount <= 1,
+                f"controller.discount={self.discount}: γ must lie in (0, 1] or be null",
+            ),
+            (
+                self.lr is None or self.lr > 0,
+                f"controller.lr={self.lr}: α must be > 0 or null (train.lr)",
+            ),
+            *(
+                (
+                    self.name == "ddqn" or value is None,
+                    f"controller.{key}={value}: a Double DQN setting (controller=ddqn); "
+                    f"{self.name} uses train.{key}",
+                )
+                for key, value in (("lr", self.lr), ("discount", self.discount))
+            ),
+        ]
+
 
 @dataclass
 class TrainConfig:
@@ -367,6 +583,40 @@ class TrainConfig:
     """Seeds trained together in one process as one batch: seed, seed+1, …, seed+K−1, each
     its own MLflow run (cdqn.training.population)."""
 
+    def check(self) -> list[str]:
+        """Problems of the ``train`` group, one line each (empty: none)."""
+        schedule = self.eps_schedule
+        return failed(
+            [
+                (self.lr > 0, f"train.lr={self.lr}: the learning rate α must be > 0"),
+                (
+                    0 < self.discount <= 1,
+                    f"train.discount={self.discount}: the discount γ must lie in (0, 1]",
+                ),
+                (self.episodes > 0, f"train.episodes={self.episodes}: must be > 0"),
+                (
+                    0 <= self.eps_start <= 1,
+                    f"train.eps_start={self.eps_start}: ε must lie in [0, 1]",
+                ),
+                (0 <= self.eps_end <= 1, f"train.eps_end={self.eps_end}: ε must lie in [0, 1]"),
+                (0 <= self.eps_dec <= 1, f"train.eps_dec={self.eps_dec}: must lie in [0, 1]"),
+                (
+                    schedule in EPS_SCHEDULES,
+                    f"train.eps_schedule={schedule!r} (env.eps_schedule unless set): "
+                    f"allowed {', '.join(EPS_SCHEDULES)}",
+                ),
+                (self.q_limit > 0, f"train.q_limit={self.q_limit}: must be > 0"),
+                (
+                    self.checkpoint_every >= 0,
+                    f"train.checkpoint_every={self.checkpoint_every}: must be >= 0 (0: off)",
+                ),
+                (
+                    self.population >= 1,
+                    f"train.population={self.population}: the number of seeds must be >= 1",
+                ),
+            ]
+        )
+
 
 @dataclass
 class TrackingConfig:
@@ -387,6 +637,17 @@ class TrackingConfig:
     local_checkpoints: str = "checkpoints"
     """Folder for checkpoints of runs whose tracking store went away
     (``<folder>/<run_id>/state.pt``); relative to the working folder."""
+
+    def check(self) -> list[str]:
+        """Problems of the ``tracking`` group, one line each (empty: none)."""
+        return failed(
+            [
+                (bool(self.uri.strip()), "tracking.uri='': give an MLflow tracking URI"),
+                (bool(self.experiment.strip()), "tracking.experiment='': give an experiment name"),
+                (self.timeout > 0, f"tracking.timeout={self.timeout}: must be > 0 seconds"),
+                (self.retry_s >= 0, f"tracking.retry_s={self.retry_s}: must be >= 0 seconds"),
+            ]
+        )
 
 
 def resolve_tracking_uri(uri: str) -> str:
@@ -414,6 +675,30 @@ class Config:
     resume: str | None = None
     """MLflow run id to continue from its last checkpoint (``python -m cdqn.train resume=<id>``)."""
 
+    def check(self) -> list[str]:
+        """Problems of the whole configuration, one line each (empty: none): each group's
+        :meth:`check` in turn, then the run's own settings (seed, resume).  No rule relates
+        two groups: every check reads one group's values, and a message that names another
+        key (``train.eps_schedule``'s default from ``env.eps_schedule``, the agents that use
+        ``train.lr``) only points to it."""
+        return [
+            *self.controller.check(),
+            *self.network.check(),
+            *self.train.check(),
+            *self.env.check(),
+            *self.tracking.check(),
+            *self.weights.check(),
+            *failed(
+                [
+                    (self.seed >= 0, f"seed={self.seed}: must be >= 0 (a non-negative integer)"),
+                    (
+                        self.resume is None or bool(str(self.resume).strip()),
+                        "resume='': give the MLflow run id of the run to continue, resume=<run_id>",
+                    ),
+                ]
+            ),
+        ]
+
 
 @dataclass
 class EvaluateConfig:
@@ -428,6 +713,19 @@ class EvaluateConfig:
     log: bool = True
     """Log the evaluation to the run (metrics eval_return_*, artifact evaluation/)."""
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
+
+    def check(self) -> list[str]:
+        """Problems of an evaluation's settings, one line each (empty: none)."""
+        return (
+            failed(
+                [
+                    (bool(self.run_id.strip()), "run_id='': give the MLflow run id, run_id=<id>"),
+                    (self.episodes > 0, f"episodes={self.episodes}: must be > 0"),
+                    (self.seed >= 0, f"seed={self.seed}: must be >= 0"),
+                ]
+            )
+            + self.tracking.check()
+        )
 
 
 @dataclass
@@ -479,209 +777,49 @@ def register_configs() -> None:
     cs.store(name="base_synthesize", node=SynthesizeConfig)
 
 
-def _tf_is_proper(tf: TransferFunctionConfig) -> bool:
-    num = [float(c) for c in tf.num]
-    den = [float(c) for c in tf.den]
-    while num and num[0] == 0.0:
-        num.pop(0)
-    while den and den[0] == 0.0:
-        den.pop(0)
-    return bool(den) and len(num) <= len(den)
-
-
 def validate(cfg: Config) -> None:
-    """Refuse values cdqn cannot run with, naming the key, the value and what is allowed."""
-    checks: list[tuple[bool, str]] = [
-        (
-            cfg.controller.name in CONTROLLERS,
-            f"controller.name={cfg.controller.name!r}: allowed {', '.join(CONTROLLERS)}",
-        ),
-        (
-            cfg.controller.design in ("paper", "synthesize"),
-            f"controller.design={cfg.controller.design!r}: allowed paper, synthesize",
-        ),
-        (
-            cfg.controller.discretization in ("zoh", "tustin", "euler"),
-            f"controller.discretization={cfg.controller.discretization!r}: "
-            "allowed zoh, tustin, euler",
-        ),
-        (
-            cfg.controller.h2_gain_map in ("paper", "research"),
-            f"controller.h2_gain_map={cfg.controller.h2_gain_map!r}: allowed paper, research",
-        ),
-        (cfg.network.width > 0, f"network.width={cfg.network.width}: must be a positive integer"),
-        (
-            cfg.network.dtype in ("float64", "float32"),
-            f"network.dtype={cfg.network.dtype!r}: allowed float64, float32",
-        ),
-        (cfg.train.lr > 0, f"train.lr={cfg.train.lr}: the learning rate α must be > 0"),
-        (
-            0 < cfg.train.discount <= 1,
-            f"train.discount={cfg.train.discount}: the discount γ must lie in (0, 1]",
-        ),
-        (cfg.train.episodes > 0, f"train.episodes={cfg.train.episodes}: must be > 0"),
-        (
-            0 <= cfg.train.eps_start <= 1,
-            f"train.eps_start={cfg.train.eps_start}: ε must lie in [0, 1]",
-        ),
-        (0 <= cfg.train.eps_end <= 1, f"train.eps_end={cfg.train.eps_end}: ε must lie in [0, 1]"),
-        (0 <= cfg.train.eps_dec <= 1, f"train.eps_dec={cfg.train.eps_dec}: must lie in [0, 1]"),
-        (
-            cfg.train.eps_schedule in EPS_SCHEDULES,
-            f"train.eps_schedule={cfg.train.eps_schedule!r} (env.eps_schedule unless set): "
-            f"allowed {', '.join(EPS_SCHEDULES)}",
-        ),
-        (cfg.train.q_limit > 0, f"train.q_limit={cfg.train.q_limit}: must be > 0"),
-        (
-            cfg.train.checkpoint_every >= 0,
-            f"train.checkpoint_every={cfg.train.checkpoint_every}: must be >= 0 (0: off)",
-        ),
-        (
-            cfg.env.rbf_centres is None or cfg.env.rbf_centres >= 2,
-            f"env.rbf_centres={cfg.env.rbf_centres}: must be >= 2 (centres per feature) or null",
-        ),
-        (cfg.env.rbf_width > 0, f"env.rbf_width={cfg.env.rbf_width}: must be > 0"),
-        (
-            cfg.env.max_episode_steps is None or cfg.env.max_episode_steps > 0,
-            f"env.max_episode_steps={cfg.env.max_episode_steps}: must be > 0 or null",
-        ),
-        (
-            cfg.controller.learning_starts >= 0,
-            f"controller.learning_starts={cfg.controller.learning_starts}: must be >= 0",
-        ),
-        *_tracking_checks(cfg.tracking),
-        (
-            cfg.train.population >= 1,
-            f"train.population={cfg.train.population}: the number of seeds must be >= 1",
-        ),
-        (
-            cfg.controller.batch_size > 0
-            and cfg.controller.buffer_size >= cfg.controller.batch_size,
-            f"controller.batch_size={cfg.controller.batch_size}, controller.buffer_size="
-            f"{cfg.controller.buffer_size}: need 0 < batch_size <= buffer_size",
-        ),
-        (
-            cfg.controller.target_update > 0 and cfg.controller.train_freq > 0,
-            "controller.target_update and controller.train_freq must be > 0",
-        ),
-        (
-            cfg.controller.discount is None or 0 < cfg.controller.discount <= 1,
-            f"controller.discount={cfg.controller.discount}: γ must lie in (0, 1] or be null",
-        ),
-        (
-            cfg.controller.lr is None or cfg.controller.lr > 0,
-            f"controller.lr={cfg.controller.lr}: α must be > 0 or null (train.lr)",
-        ),
-        *(
-            (
-                cfg.controller.name == "ddqn" or value is None,
-                f"controller.{key}={value}: a Double DQN setting (controller=ddqn); "
-                f"{cfg.controller.name} uses train.{key}",
-            )
-            for key, value in (("lr", cfg.controller.lr), ("discount", cfg.controller.discount))
-        ),
-        (
-            len(cfg.weights.h2.w_x) == 3 and all(w >= 0 for w in cfg.weights.h2.w_x),
-            f"weights.h2.w_x={list(cfg.weights.h2.w_x)}: need 3 non-negative diagonal entries",
-        ),
-        (cfg.weights.h2.w_c > 0, f"weights.h2.w_c={cfg.weights.h2.w_c}: must be > 0"),
-    ]
-    for group in ("hinf", "hinf_f"):
-        w = getattr(cfg.weights, group)
-        for name in ("w_p", "w_u", "w_r", "w_qhat"):
-            tf = getattr(w, name)
-            checks.append(
-                (
-                    _tf_is_proper(tf),
-                    f"weights.{group}.{name}=num {list(tf.num)} / den {list(tf.den)}: not a proper "
-                    "transfer function (need a non-zero denominator of degree >= the numerator's)",
-                )
-            )
-        checks.append((w.w_delta > 0, f"weights.{group}.w_delta={w.w_delta}: must be > 0"))
-    targets = [("weights.target", cfg.weights.target)] + [
-        (f"weights.controller_target.{name}", getattr(cfg.weights.controller_target, name))
-        for name in TARGET_CONTROLLERS
-    ]
-    for key, tgt in targets:
-        if tgt.gamma_eff is not None:
-            g_eff = list(tgt.gamma_eff)
-            checks.append(
-                (
-                    len(g_eff) == 2 and g_eff[0] <= g_eff[1],
-                    f"{key}.gamma_eff={g_eff}: need [lower, upper] with lower <= upper",
-                )
-            )
-        if tgt.step_scale is not None:
-            scale = list(tgt.step_scale)
-            checks.append(
-                (
-                    len(scale) == 2 and 0 < scale[0] <= scale[1],
-                    f"{key}.step_scale={scale}: need [lower, upper] with 0 < lower <= upper",
-                )
-            )
-    rp = cfg.weights.replay
-    checks.append((rp.repeats >= 0, f"weights.replay.repeats={rp.repeats}: must be >= 0 (0: off)"))
-    checks.append(
-        (
-            rp.last is None or rp.last >= 1,
-            f"weights.replay.last={rp.last}: must be >= 1 or null (the whole episode)",
-        )
-    )
-    checks.append(
-        (
-            rp.when in REPLAY_WHEN,
-            f"weights.replay.when={rp.when!r}: allowed {', '.join(REPLAY_WHEN)}",
-        )
-    )
-    tb = cfg.weights.theta_bounds
-    for name in ("theta1", "ratio"):
-        rng = list(getattr(tb, name))
-        checks.append(
-            (
-                len(rng) == 2 and 0 < rng[0] <= rng[1],
-                f"weights.theta_bounds.{name}={rng}: need [lower, upper] with 0 < lower <= upper",
-            )
-        )
-    if tb.nominal is not None:
-        nominal = list(tb.nominal)
-        checks.append(
-            (
-                len(nominal) == 2 and all(v > 0 for v in nominal),
-                f"weights.theta_bounds.nominal={nominal}: need [Θ1, Θ2], both > 0, or null",
-            )
-        )
-    checks += [
-        (cfg.seed >= 0, f"seed={cfg.seed}: must be >= 0 (a non-negative integer)"),
-        (
-            cfg.resume is None or bool(str(cfg.resume).strip()),
-            "resume='': give the MLflow run id of the run to continue, resume=<run_id>",
-        ),
-    ]
-    _raise_if_failed(checks)
+    """Refuse values cdqn cannot run with, naming the key, the value and what is allowed:
+    every problem of :meth:`Config.check` (each group's ``check()``) in one
+    :class:`ConfigError`."""
+    raise_problems(cfg.check())
 
 
 def validate_evaluate(cfg: EvaluateConfig) -> None:
     """Refuse evaluation settings cdqn cannot run with (same message style as :func:`validate`)."""
-    _raise_if_failed(
-        [
-            (bool(cfg.run_id.strip()), "run_id='': give the MLflow run id, run_id=<id>"),
-            (cfg.episodes > 0, f"episodes={cfg.episodes}: must be > 0"),
-            (cfg.seed >= 0, f"seed={cfg.seed}: must be >= 0"),
-            *_tracking_checks(cfg.tracking),
-        ]
-    )
+    raise_problems(cfg.check())
 
 
-def _tracking_checks(cfg: TrackingConfig) -> list[tuple[bool, str]]:
-    return [
-        (bool(cfg.uri.strip()), "tracking.uri='': give an MLflow tracking URI"),
-        (bool(cfg.experiment.strip()), "tracking.experiment='': give an experiment name"),
-        (cfg.timeout > 0, f"tracking.timeout={cfg.timeout}: must be > 0 seconds"),
-        (cfg.retry_s >= 0, f"tracking.retry_s={cfg.retry_s}: must be >= 0 seconds"),
-    ]
+def failed(checks: Iterable[tuple[bool, str]]) -> list[str]:
+    """The messages of the rules that do not hold, in order; each rule is ``(holds, message)``,
+    the message naming the key, the value and what is allowed."""
+    return [msg for ok, msg in checks if not ok]
 
 
-def _raise_if_failed(checks: list[tuple[bool, str]]) -> None:
-    errors = [msg for ok, msg in checks if not ok]
-    if errors:
-        raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(errors))
+def raise_problems(problems: list[str]) -> None:
+    """Raise one :class:`ConfigError` listing ``problems``, one per line; nothing when empty."""
+    if problems:
+        raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
+
+
+def _target_problems(
+    key: str, gamma_eff: list[float] | None, step_scale: list[float] | None
+) -> list[str]:
+    """Problems of a learning target's ranges at ``key`` (unset ranges: none)."""
+    checks: list[tuple[bool, str]] = []
+    if gamma_eff is not None:
+        g_eff = list(gamma_eff)
+        checks.append(
+            (
+                len(g_eff) == 2 and g_eff[0] <= g_eff[1],
+                f"{key}.gamma_eff={g_eff}: need [lower, upper] with lower <= upper",
+            )
+        )
+    if step_scale is not None:
+        scale = list(step_scale)
+        checks.append(
+            (
+                len(scale) == 2 and 0 < scale[0] <= scale[1],
+                f"{key}.step_scale={scale}: need [lower, upper] with 0 < lower <= upper",
+            )
+        )
+    return failed(checks)

@@ -37,6 +37,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from cdqn.cli import check_evaluate, preflight
 from cdqn.config import (
+    CONF_DIR,
     ConfigError,
     EnvConfig,
     EvaluateConfig,
@@ -191,7 +192,7 @@ def _log(client: MlflowClient, result: EvalResult, params: dict[str, str]) -> No
         client.log_artifact(result.run_id, str(path), folder(Artifact.EVALUATION))
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="evaluate")
 def main(cfg: DictConfig) -> float:
     conf: EvaluateConfig = OmegaConf.to_object(cfg)
     try:

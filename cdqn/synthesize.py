@@ -23,7 +23,7 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig
 
-from cdqn.config import ConfigError, SynthesizeConfig, register_configs
+from cdqn.config import CONF_DIR, ConfigError, SynthesizeConfig, register_configs
 from cdqn.control.errors import DesignError
 
 log = logging.getLogger("cdqn.synthesize")
@@ -125,7 +125,7 @@ def synthesize(cfg: DictConfig) -> str:
     return text
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="synthesize")
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="synthesize")
 def main(cfg: DictConfig) -> None:
     try:
         print(synthesize(cfg))

@@ -27,7 +27,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from cdqn.cli import preflight, resume_conflicts
-from cdqn.config import ConfigError, register_configs, resolve_tracking_uri
+from cdqn.config import CONF_DIR, ConfigError, register_configs, resolve_tracking_uri
 from cdqn.control.errors import DesignError
 from cdqn.training.callbacks import record_job
 from cdqn.training.result import EXIT_OUTAGE, OUTAGE, RunResult, solve_text, summary_text
@@ -47,7 +47,7 @@ def _is_multirun() -> bool:
         return False
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
 def main(cfg: DictConfig) -> float:
     multirun = _is_multirun()
     try:

@@ -18,19 +18,17 @@ from __future__ import annotations
 import logging
 import os
 import sys
-from pathlib import Path
 
 import hydra
 from omegaconf import DictConfig
 
-from cdqn.config import ConfigError
+from cdqn.config import CONF_DIR, ConfigError
 from cdqn.control.errors import DesignError
 from cdqn.tuning.report import summary_text
 from cdqn.tuning.settings import validate_tune
 from cdqn.tuning.study import Study
 
 log = logging.getLogger("cdqn.tune")
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
 
 def check_tune(cfg: DictConfig) -> None:

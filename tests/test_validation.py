@@ -217,3 +217,38 @@ def test_cli_refuses_a_bad_config_dir_sweep_before_any_job(tmp_path: Path):
     assert "train.lr=0.0: the learning rate α must be > 0" in proc.stderr
     assert "Traceback" not in proc.stderr + proc.stdout
     assert not (tmp_path / "m.db").exists() and not (tmp_path / "multirun").exists()
+
+
+def test_each_group_checks_its_own_keys():
+    """``validate`` is each group's ``check()`` in turn: a group's problems name only its
+    own keys, and together they are exactly what ``validate`` refuses."""
+    conf: Config = OmegaConf.to_object(compose_config())
+    assert conf.check() == []
+    conf.network.width = 0
+    conf.train.lr = 0.0
+    conf.env.rbf_width = 0.0
+    conf.controller.design = "guess"
+    conf.tracking.timeout = 0.0
+    conf.weights.hinf_f.w_delta = -1.0
+    conf.weights.controller_target.h2.gamma_eff = [0.5, 0.1]
+    groups = {
+        "controller": conf.controller,
+        "network": conf.network,
+        "train": conf.train,
+        "env": conf.env,
+        "tracking": conf.tracking,
+        "weights": conf.weights,
+    }
+    found = {name: group.check() for name, group in groups.items()}
+    for name, problems in found.items():
+        assert len(problems) == (2 if name == "weights" else 1), (name, problems)
+        assert all(p.startswith(f"{name}.") for p in problems), (name, problems)
+    assert conf.check() == [p for problems in found.values() for p in problems]
+    with pytest.raises(ConfigError) as err:
+        validate(conf)
+    assert str(err.value).splitlines()[1:] == [f"  - {p}" for p in conf.check()]
+    assert found["weights"] == [
+        "weights.hinf_f.w_delta=-1.0: must be > 0",
+        "weights.controller_target.h2.gamma_eff=[0.5, 0.1]: need [lower, upper] with "
+        "lower <= upper",
+    ]

@@ -32,7 +32,7 @@ import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -261,32 +261,42 @@ def _certify(K: ControllerMatrices, inputs: DesignInputs, samples: np.ndarray) -
     )
 
 
-def _design_hinf(inputs: DesignInputs, samples: np.ndarray, cover: CoverFit) -> ControllerDesign:
+def _hinf_weight_set(inputs: DesignInputs, cover: CoverFit) -> HinfWeightSet:
+    """The dynamic design's weights: the kind's W_p, W_u, W_r, W_Q̂, the cover scaled by W_Δ
+    and the measurement-noise levels."""
     syn = inputs.synthesis
     ws = _weight_set(inputs.weights, "")
-    w_delta = float(inputs.weights["w_delta"])
-    cover_w = cover.weight.scaled(w_delta)
-    weights = HinfWeightSet(
+    return HinfWeightSet(
         ws["w_p"],
         ws["w_u"],
         ws["w_r"],
         ws["w_qhat"],
-        cover_w,
+        cover.weight.scaled(float(inputs.weights["w_delta"])),
         (float(syn["noise"][0]), float(syn["noise"][1])),
     )
-    reg = _reg(syn)
-    P = generalized_plant(*inputs.box.nominal, inputs.discount, weights, reg, plant=syn["plant"])
-    res = hinf_bisection(P, rel_tol=float(syn["gamma_tol"]))
-    K_full = ControllerMatrices(
-        res.controller.A, res.controller.B, res.controller.C, res.controller.D
-    )
-    red = hankel(K_full)
-    threshold = float(syn["hsv_threshold"])
-    order0 = min(max(red.order_for(threshold), red.n_unstable), K_full.nstates)
+
+
+class _Reduced(NamedTuple):
+    """The controller :func:`_reduce_on_target` keeps and what it tried."""
+
+    K: ControllerMatrices
+    certificate: Certificate
+    share: float
+    """λ of the kept candidate (:func:`_dc_on_target`); nan when none passed its certificate."""
+    tried: list[dict[str, Any]]
+    """Each order and candidate tried, with its outcome."""
+
+
+def _reduce_on_target(
+    K_full: ControllerMatrices, order0: int, inputs: DesignInputs, samples: np.ndarray
+) -> _Reduced:
+    """Balanced truncation of ``K_full`` to the lowest order from ``order0`` up at which a
+    candidate that keeps the learning target (:func:`_dc_on_target`) passes its certificate;
+    when none passes, the last candidate certified (its certificate says why).  Raises
+    :class:`DesignError` when every candidate's instantaneous gain is off the target or
+    unstable on the box."""
     tried: list[dict[str, Any]] = []
-    chosen: tuple[ControllerMatrices, Certificate] | None = None
     last: tuple[ControllerMatrices, Certificate] | None = None
-    share = float("nan")
     for order in range(order0, K_full.nstates + 1):
         try:
             K_order = truncate(K_full, order)
@@ -302,65 +312,78 @@ def _design_hinf(inputs: DesignInputs, samples: np.ndarray, cover: CoverFit) -> 
             tried.append({"order": order, "dynamic_share": lam, "passed": cert.passed,
                           "worst_pole": cert.worst_pole})  # fmt: skip
             if cert.passed:
-                chosen = (K, cert)
-                share = lam
-                break
+                return _Reduced(K, cert, lam, tried)
             last = (K, cert)
-        if chosen is not None:
-            break
-    if chosen is None:
-        if last is None:
-            key = "weights.target" if inputs.target is None else inputs.target.key("gamma_eff")
-            key = key.rsplit(".", 1)[0]
-            raise DesignError(
-                f"hinf design for the box Θ1 ∈ {list(inputs.box.theta1)}, Θ2/Θ1 ∈ "
-                f"{list(inputs.box.ratio)} failed its certificate: with the learning target "
-                f"{inputs.target.to_dict() if inputs.target else None}, every instantaneous "
-                f"gain left by the shares λ in {list(DYNAMIC_SHARES)} of the synthesised "
-                f"dynamics (and {list(INTEGRAL_SHARES)} of its integral gain) is off the target "
-                f"or unstable on the box; widen {key} or narrow the box"
-            )
-        K, cert = last
-    else:
-        K, cert = chosen
+    if last is None:
+        key = "weights.target" if inputs.target is None else inputs.target.key("gamma_eff")
+        key = key.rsplit(".", 1)[0]
+        raise DesignError(
+            f"hinf design for the box Θ1 ∈ {list(inputs.box.theta1)}, Θ2/Θ1 ∈ "
+            f"{list(inputs.box.ratio)} failed its certificate: with the learning target "
+            f"{inputs.target.to_dict() if inputs.target else None}, every instantaneous "
+            f"gain left by the shares λ in {list(DYNAMIC_SHARES)} of the synthesised "
+            f"dynamics (and {list(INTEGRAL_SHARES)} of its integral gain) is off the target "
+            f"or unstable on the box; widen {key} or narrow the box"
+        )
+    return _Reduced(*last, float("nan"), tried)
+
+
+def _design_hinf(inputs: DesignInputs, samples: np.ndarray, cover: CoverFit) -> ControllerDesign:
+    """The dynamic H∞ design (paper Sec. 4.2): the generalized plant at the box's nominal
+    (:func:`cdqn.control.hinf.generalized_plant`), the γ-bisection
+    ``min_K γ s.t. ‖F_l(P, K)‖_∞ < γ``, balanced reduction to the lowest order whose
+    candidate on the learning target passes the certificate (:func:`_reduce_on_target`)."""
+    syn = inputs.synthesis
+    weights = _hinf_weight_set(inputs, cover)
+    reg = _reg(syn)
+    P = generalized_plant(*inputs.box.nominal, inputs.discount, weights, reg, plant=syn["plant"])
+    res = hinf_bisection(P, rel_tol=float(syn["gamma_tol"]))
+    K_full = ControllerMatrices(
+        res.controller.A, res.controller.B, res.controller.C, res.controller.D
+    )
+    red = hankel(K_full)
+    threshold = float(syn["hsv_threshold"])
+    order0 = min(max(red.order_for(threshold), red.n_unstable), K_full.nstates)
+    kept = _reduce_on_target(K_full, order0, inputs, samples)
+    K = kept.K
     omega = np.logspace(-3, 6, 300)
-    cl = lft_closed_loop(P, StateSpaceMatrices(K.A, K.B, K.C, K.D))
-    sv = sigma(cl, omega)
+    sv = sigma(lft_closed_loop(P, StateSpaceMatrices(K.A, K.B, K.C, K.D)), omega)
     details = {
         "full_order": K_full.nstates,
         "order": K.nstates,
         "hsv": red.hsv.tolist(),
         "hsv_threshold": threshold,
-        "orders_tried": tried,
-        "dynamic_share": share,
+        "orders_tried": kept.tried,
+        "dynamic_share": kept.share,
         "gamma_full_order": res.gamma,
         "gamma_reduced_grid": float(sv[:, 0].max()),
         "sb10ad_calls": res.iterations,
         "plant": syn["plant"],
         "plant_states": P.sys.nstates,
         "regularisation": asdict(reg),
-        "w_delta": w_delta,
+        "w_delta": float(inputs.weights["w_delta"]),
         "controller_poles": [[float(z.real), float(z.imag)] for z in np.linalg.eigvals(K.A)]
         if K.nstates
         else [],
     }
+    cover_w = weights.w_cover
     return ControllerDesign(
         kind="hinf",
         controller=K,
         gamma=res.gamma,
         box=inputs.box,
         discount=inputs.discount,
-        certificate=cert,
+        certificate=kept.certificate,
         samples=samples,
         cover=cover,
         details=details,
         sigma_omega=omega,
         sigma=np.column_stack([sv[:, 0], sv[:, -1]]),
         weights=[
-            ws["w_p"],
-            ws["w_u"],
-            ws["w_r"],
-            ws["w_qhat"],
+            weights.w_p,
+            weights.w_u,
+            weights.w_r,
+            weights.w_qhat,
             SisoWeight(cover_w.num, cover_w.den, "W_Δ·w_cover"),
         ],
     )

@@ -59,6 +59,7 @@ that also feed the measurements.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import slycot
@@ -142,6 +143,146 @@ class HinfResult:
     """SB10AD calls made by the bisection."""
 
 
+class _Signals:
+    """The generalized plant's states and its signals as linear maps of ``[x; w; u]``.
+
+    A signal is one row ``[c_x, d_w, d_u]`` with ``signal = c_x x + d_w w + d_u u``; the
+    states ``x`` are, in order, the learning plant's ``x_Q``, the integrator ``x_i`` and each
+    weight's own states (``r``: W_r, ``q``: W_Q̂, ``c1``/``c2``: the cover on Q1/Q2, ``p``: W_p,
+    ``u``: W_u)."""
+
+    def __init__(self, n_q: int, blocks: dict[str, tuple[np.ndarray, ...]]) -> None:
+        self.blocks = blocks
+        sizes = {"Q": n_q, "i": 1} | {k: v[0].shape[0] for k, v in blocks.items()}
+        self.idx: dict[str, slice] = {}
+        n = 0
+        for k, size in sizes.items():
+            self.idx[k] = slice(n, n + size)
+            n += size
+        self.n, self.nw = n, len(EXOGENOUS)
+
+    def zero(self) -> np.ndarray:
+        return np.zeros(self.n + self.nw + 1)
+
+    def w(self, name: str) -> np.ndarray:
+        """The exogenous input ``name`` of :data:`EXOGENOUS`."""
+        out = self.zero()
+        out[self.n + EXOGENOUS.index(name)] = 1.0
+        return out
+
+    def u(self) -> np.ndarray:
+        """The control input."""
+        out = self.zero()
+        out[-1] = 1.0
+        return out
+
+    def state(self, i: int) -> np.ndarray:
+        out = self.zero()
+        out[i] = 1.0
+        return out
+
+    def weighted(self, key: str, inp: np.ndarray, k: float = 1.0) -> np.ndarray:
+        """``k W(s) inp``: the output ``C x_W + D inp`` of weight ``key`` fed ``inp``."""
+        _, _, c, d = self.blocks[key]
+        out = d[0, 0] * inp
+        out[self.idx[key]] += c[0]
+        return k * out
+
+    def add(self, *terms: tuple[float, np.ndarray]) -> np.ndarray:
+        """``Σ coef · signal``."""
+        out = self.zero()
+        for coef, t in terms:
+            out = out + coef * t
+        return out
+
+
+class _Loop(NamedTuple):
+    """The interconnection's signals (module docstring)."""
+
+    u: np.ndarray
+    """Control input u."""
+    rw: np.ndarray
+    """``r_w = W_r r``."""
+    qhat: np.ndarray
+    """``γ W_Q̂ Q̂2``."""
+    Q: list[np.ndarray]
+    """``Q = C_Q x_Q``, the learning plant's outputs [Q1, Q2]."""
+    Qm: list[np.ndarray]
+    """``Q̃ = Q + W_Δ d + W_n n``, the measured Q1, Q2."""
+    e: np.ndarray
+    """``e = r_w + γ W_Q̂ Q̂2 − Q̃1``, the tracking error."""
+    tracked: np.ndarray
+    """What W_p weighs: the integrated error ``x_i`` (or ``e``, ``track_integral=False``)."""
+
+
+def _loop(
+    sig: _Signals, C_Q: np.ndarray, discount: float, noise: tuple[float, float], track: bool
+) -> _Loop:
+    """The signals of the interconnection (paper Sec. 4.2, Fig. hinfsyn_DPK)."""
+    q0 = sig.idx["Q"].start
+    Q = [sig.add(*((C_Q[j, k], sig.state(q0 + k)) for k in range(C_Q.shape[1]))) for j in range(2)]
+    dq = [sig.weighted("c1", sig.w("d1")), sig.weighted("c2", sig.w("d2"))]
+    Qm = [sig.add((1.0, Q[j]), (1.0, dq[j]), (noise[j], sig.w(f"n{j + 1}"))) for j in range(2)]
+    rw = sig.weighted("r", sig.w("r"))
+    qhat = sig.weighted("q", sig.w("qhat"), discount)
+    e = sig.add((1.0, rw), (1.0, qhat), (-1.0, Qm[0]))
+    tracked = sig.state(sig.idx["i"].start) if track else e
+    return _Loop(sig.u(), rw, qhat, Q, Qm, e, tracked)
+
+
+def _state_equations(
+    sig: _Signals, A_Q: np.ndarray, B_Q: np.ndarray, C_Q: np.ndarray, s: _Loop, reg: Regularisation
+) -> tuple[np.ndarray, np.ndarray]:
+    """``ẋ = A x + B [w; u]``:
+
+    .. math::  \\dot x_Q = A_Q x_Q + B_u u + B_r r_w + \\varepsilon_q C_Q^T w_q, \\qquad
+               \\dot x_i = -\\varepsilon_i x_i + e, \\qquad
+               \\dot x_W = A_W x_W + B_W v_W
+
+    for each weight ``W`` and its input ``v_W`` (``r``, ``Q̂2``, ``d1``, ``d2``, the tracked
+    error, ``u``)."""
+    n = sig.n
+    A, B = np.zeros((n, n)), np.zeros((n, sig.nw + 1))
+    q0 = sig.idx["Q"].start
+    A[q0 : q0 + A_Q.shape[0], q0 : q0 + A_Q.shape[0]] = A_Q
+    for k in range(A_Q.shape[0]):
+        noise = [(reg.process * C_Q[j, k], sig.w(f"w_q{j + 1}")) for j in range(2)]
+        lin = sig.add((B_Q[k, 0], s.u), (B_Q[k, 1], s.rw), *noise)
+        A[q0 + k] += lin[:n]
+        B[q0 + k] += lin[n:]
+    i0 = sig.idx["i"].start
+    A[i0, i0] -= reg.integrator
+    A[i0] += s.e[:n]
+    B[i0] += s.e[n:]
+    inputs = {"r": sig.w("r"), "q": sig.w("qhat"), "c1": sig.w("d1"), "c2": sig.w("d2")}
+    for key, inp in (inputs | {"p": s.tracked, "u": s.u}).items():
+        a, b, _, _ = sig.blocks[key]
+        sl = sig.idx[key]
+        A[sl, sl] += a
+        A[sl] += np.outer(b[:, 0], inp[:n])
+        B[sl] += np.outer(b[:, 0], inp[n:])
+    return A, B
+
+
+def _output_equations(
+    sig: _Signals, s: _Loop, reg: Regularisation
+) -> tuple[np.ndarray, np.ndarray]:
+    """``[z; y] = C x + D [w; u]``: ``z = [Q (to Δ), Q (to Δ_n), W_p x_i, W_u u, ε_u u]``
+    (:data:`PERFORMANCE`), ``y = [x_i + ε_s w_s, Q̃1, Q̃2]`` (:data:`MEASUREMENTS`)."""
+    i0 = sig.idx["i"].start
+    outs = [
+        *s.Q,
+        *s.Q,
+        sig.weighted("p", s.tracked),
+        sig.weighted("u", s.u),
+        sig.add((reg.control, s.u)),
+        sig.add((1.0, sig.state(i0)), (reg.sensor, sig.w("w_s"))),
+        *s.Qm,
+    ]
+    rows = np.vstack(outs)
+    return rows[:, : sig.n], rows[:, sig.n :]
+
+
 def generalized_plant(
     theta1: float,
     theta2: float,
@@ -153,9 +294,9 @@ def generalized_plant(
 ) -> GeneralizedPlant:
     """Assemble the generalized plant of the module docstring at nominal (Θ1, Θ2), with the
     minimal realisation of the learning plant ``plant``
-    (:func:`cdqn.control.plant.minimal_io_plant`)."""
+    (:func:`cdqn.control.plant.minimal_io_plant`): its states, then its state
+    (:func:`_state_equations`) and output (:func:`_output_equations`) equations."""
     A_Q, B_Q, C_Q = minimal_io_plant(theta1, theta2, discount, plant)
-    n_q = A_Q.shape[0]
     blocks = {
         "r": weights.w_r.ss(),
         "q": weights.w_qhat.ss(),
@@ -164,105 +305,11 @@ def generalized_plant(
         "p": weights.w_p.ss(),
         "u": weights.w_u.ss(),
     }
-    sizes = {"Q": n_q, "i": 1} | {k: v[0].shape[0] for k, v in blocks.items()}
-    idx: dict[str, slice] = {}
-    n = 0
-    for k, size in sizes.items():
-        idx[k] = slice(n, n + size)
-        n += size
-    nw = len(EXOGENOUS)
-    W = {name: i for i, name in enumerate(EXOGENOUS)}
-
-    def signal() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return np.zeros(n), np.zeros(nw), np.zeros(1)
-
-    def weight_out(key: str, inp: tuple[np.ndarray, np.ndarray, np.ndarray], k: float = 1.0):
-        a, b, c, d = blocks[key]
-        cx, dw, du = (d[0, 0] * v for v in inp)
-        cx = cx.copy()
-        cx[idx[key]] += c[0]
-        return k * cx, k * dw, k * du
-
-    def from_w(name: str):
-        cx, dw, du = signal()
-        dw[W[name]] = 1.0
-        return cx, dw, du
-
-    def from_u():
-        cx, dw, du = signal()
-        du[0] = 1.0
-        return cx, dw, du
-
-    def state(i: int):
-        cx, dw, du = signal()
-        cx[i] = 1.0
-        return cx, dw, du
-
-    def add(*terms):
-        out = signal()
-        for coef, t in terms:
-            out = tuple(o + coef * v for o, v in zip(out, t, strict=True))
-        return out
-
-    rw = weight_out("r", from_w("r"))
-    qw = weight_out("q", from_w("qhat"), discount)
-    dq = [weight_out("c1", from_w("d1")), weight_out("c2", from_w("d2"))]
-    q0 = idx["Q"].start
-    Q = [add(*((C_Q[j, k], state(q0 + k)) for k in range(n_q))) for j in range(2)]
-    qt = [
-        add((1.0, Q[j]), (1.0, dq[j]), (weights.w_noise[j], from_w(f"n{j + 1}"))) for j in range(2)
-    ]
-    e = add((1.0, rw), (1.0, qw), (-1.0, qt[0]))
-    u = from_u()
-    i0 = idx["i"].start
-    TRACK = [state(i0) if track_integral else e]
-
-    A = np.zeros((n, n))
-    B = np.zeros((n, nw + 1))
-
-    # learning plant: x_Q' = A_Q x_Q + B_u u + B_r r_w + ε_q C_Qᵀ w_q  (Q = C_Q x_Q)
-    A[q0 : q0 + n_q, q0 : q0 + n_q] = A_Q
-    for k in range(n_q):
-        row = q0 + k
-        noise = [(reg.process * C_Q[j, k], from_w(f"w_q{j + 1}")) for j in range(2)]
-        lin = add((B_Q[k, 0], u), (B_Q[k, 1], rw), *noise)
-        A[row] += lin[0]
-        B[row] += np.concatenate([lin[1], lin[2]])
-    # integrator of the tracking error
-    i0 = idx["i"].start
-    A[i0, i0] -= reg.integrator
-    A[i0] += e[0]
-    B[i0] += np.concatenate([e[1], e[2]])
-    # weight states
-    for key, inp in (
-        ("r", from_w("r")),
-        ("q", from_w("qhat")),
-        ("c1", from_w("d1")),
-        ("c2", from_w("d2")),
-        ("p", TRACK[0]),
-        ("u", u),
-    ):
-        a, b, _, _ = blocks[key]
-        sl = idx[key]
-        A[sl, sl] += a
-        A[sl] += np.outer(b[:, 0], inp[0])
-        B[sl] += np.outer(b[:, 0], np.concatenate([inp[1], inp[2]]))
-
-    outs = [
-        Q[0],
-        Q[1],
-        Q[0],
-        Q[1],
-        weight_out("p", TRACK[0]),
-        weight_out("u", u),
-        add((reg.control, u)),
-        add((1.0, state(i0)), (reg.sensor, from_w("w_s"))),
-        qt[0],
-        qt[1],
-    ]
-    C = np.vstack([o[0] for o in outs])
-    D = np.vstack([np.concatenate([o[1], o[2]]) for o in outs])
-    return GeneralizedPlant(StateSpaceMatrices(A, B, C, D), nw, len(PERFORMANCE))
+    sig = _Signals(A_Q.shape[0], blocks)
+    loop = _loop(sig, C_Q, discount, weights.w_noise, track_integral)
+    A, B = _state_equations(sig, A_Q, B_Q, C_Q, loop, reg)
+    C, D = _output_equations(sig, loop, reg)
+    return GeneralizedPlant(StateSpaceMatrices(A, B, C, D), sig.nw, len(PERFORMANCE))
 
 
 def _sb10ad(P: GeneralizedPlant, gamma: float):

@@ -7,10 +7,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from cdqn.config import EnvConfig
-
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
-"""The Hydra config folder shipped with cdqn."""
+from cdqn.config import CONF_DIR, EnvConfig
 
 
 @functools.lru_cache(maxsize=4)
