@@ -66,7 +66,7 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from cdqn.agents.base import EpsilonGreedy  # noqa: E402
-from cdqn.config import Config, ConfigError, register_configs  # noqa: E402
+from cdqn.config import CONF_DIR, Config, ConfigError, register_configs  # noqa: E402
 from cdqn.control.factory import make_controller  # noqa: E402
 from cdqn.envs import adopt, env_presets, env_sizes, make_env  # noqa: E402
 from cdqn.network import NetworkSpec, QNetwork  # noqa: E402
@@ -83,7 +83,6 @@ from cdqn.training.signals import (  # noqa: E402
 )
 from cdqn.training.tracking import Recorder  # noqa: E402
 
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 CONTROLLERS = ("none", "h2", "hinf", "hinf_f", "ddqn")
 PAPER_ENVS = ("cartpole", "acrobot", "mountaincar")
 PAPER_CONTROLLERS = ("h2", "hinf", "hinf_f", "ddqn")

@@ -19,6 +19,7 @@ from omegaconf import DictConfig, OmegaConf, read_write
 
 from cdqn.config import (
     BOXED_CONTROLLERS,
+    CONF_DIR,
     TARGET_CONTROLLERS,
     Config,
     ConfigError,
@@ -35,7 +36,6 @@ from cdqn.tuning.tracker import Tracker
 from cdqn.tuning.trial import STATUSES, run_trials
 
 log = logging.getLogger("cdqn.tune")
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
 
 class Study:
