@@ -13,6 +13,7 @@ from hydra import compose, initialize_config_dir
 from mlflow.tracking import MlflowClient
 from omegaconf import OmegaConf
 
+from cdqn.training.batching import batchable
 from cdqn.tuning.objective import area, ma100, padded
 from cdqn.tuning.pruner import EpisodeMedianPruner
 from cdqn.tuning.report import summary_text
@@ -586,3 +587,4 @@ def test_a_gain_scheduled_design_is_specified_without_a_box(tmp_path: Path) -> N
     out = study.specified({"gamma_eff": 2.0}, seed=100, population=1)
     assert out.controller.name == "h2" and not study.boxes
     assert list(out.weights.theta_bounds.ratio) == list(cfg.weights.theta_bounds.ratio)
+    assert batchable(OmegaConf.to_object(out))  # one batch, which reports each episode

@@ -24,7 +24,7 @@ from typing import NamedTuple
 
 from omegaconf import DictConfig, open_dict
 
-from cdqn.config import Config
+from cdqn.config import BOXED_CONTROLLERS, Config
 
 SEED_KEY = "seed"
 POPULATION_KEY = "train.population"
@@ -49,7 +49,7 @@ def batchable(conf: Config) -> bool:
     measured = (
         ctrl.synthesis.ntk_bounds == "measured"
         and ctrl.design == "synthesize"
-        and ctrl.name in ("hinf", "hinf_f", "h2")
+        and ctrl.name in BOXED_CONTROLLERS
     )
     return conf.train.fast_path and not measured
 
