@@ -166,22 +166,25 @@ def check_overrides(
     ``config_dir`` (``--config-dir``, e.g. ``sweeps``): the primary config comes from there,
     with ``conf/`` on the search path, and in a multirun the config's own
     ``hydra.sweeper.params`` are swept too (the command line's value of a key wins)."""
+    parsed = _parsed(overrides)
+    if isinstance(parsed, str):
+        return [parsed]
+    dirs = preset_dirs(parsed, config_name)
     searchpath: list[str] = []
     if config_dir is not None and config_dir != CONF_DIR:
-        searchpath = [f"hydra.searchpath=[file://{CONF_DIR}]"]
+        # conf/ and the user's folders on one search path (a later hydra.searchpath replaces)
+        entries = ",".join(f"file://{d}" for d in [CONF_DIR, *dirs])
+        searchpath = [f"hydra.searchpath=[{entries}]"]
+        overrides = [o for o in overrides if not o.startswith("hydra.searchpath=")]
         if multirun:
             given = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
-            params = _sweeper_params(config_dir, config_name, searchpath)
+            firsts = [f"{ov.key_or_group}={v[0]}" for ov in parsed if not ov.is_hydra_override()
+                      and not ov.is_add() and (v := _values(ov))]  # fmt: skip
+            params = _sweeper_params(config_dir, config_name, [*searchpath, *firsts])
             overrides = [p for p in params if p.split("=", 1)[0] not in given] + overrides
-    parser = OverridesParser.create()
-    parsed: list[Override] = []
-    for text in overrides:
-        try:
-            parsed.extend(parser.parse_overrides([text]))
-        except OverrideParseException as err:
-            first = str(err).splitlines()[0]
-            return [f"{text}: cannot parse ({first}); see Hydra's override grammar"]
-    errors = _group_errors(parsed, preset_dirs(parsed, config_name))
+        parsed = _parsed(overrides)
+        assert not isinstance(parsed, str)
+    errors = _group_errors(parsed, dirs)
     if config_name == "config" and any(o.key_or_group == "resume" for o in parsed):
         if any(o.key_or_group == "resume" and not str(o.value() or "").strip() for o in parsed):
             errors.append(
@@ -199,6 +202,19 @@ def check_overrides(
                 if msg not in errors:
                     errors.append(msg)
     return errors
+
+
+def _parsed(overrides: list[str]) -> list[Override] | str:
+    """The parsed overrides, or the one-line message of the first that does not parse."""
+    parser = OverridesParser.create()
+    parsed: list[Override] = []
+    for text in overrides:
+        try:
+            parsed.extend(parser.parse_overrides([text]))
+        except OverrideParseException as err:
+            first = str(err).splitlines()[0]
+            return f"{text}: cannot parse ({first}); see Hydra's override grammar"
+    return parsed
 
 
 def resume_conflicts(overrides: list[str]) -> list[str]:

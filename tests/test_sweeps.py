@@ -302,3 +302,18 @@ def test_a_killed_sweep_started_again_continues_itsruns_of(tmp_path: Path) -> No
     resumed = [k for k in left if after[k].data.tags.get("resume_count")]
     assert resumed == [k for k in left if k in before], (left, resumed)
     print("continued after SIGKILL:", left)
+
+
+def test_a_sweep_config_finds_the_users_presets(tmp_path: Path) -> None:
+    """``--config-dir sweeps --config-name like`` takes each job's weights from
+    ``tuned_<env>-<controller>``: the pre-check finds them in a ``hydra.searchpath`` folder
+    (beside conf/), and names a missing one in one line."""
+    from cdqn.cli import check_overrides
+
+    src = (CONF_DIR / "weights" / "cartpole.yaml").read_text()
+    (tmp_path / "weights").mkdir()
+    (tmp_path / "weights" / "tuned_cartpole-h2.yaml").write_text(src)
+    common = ["env=cartpole", f"hydra.searchpath=[file://{tmp_path}]", "train.episodes=2"]
+    assert check_overrides([*common, "controller=h2"], True, "like", config_dir=SWEEPS) == []
+    (msg,) = check_overrides([*common, "controller=h2,hinf"], True, "like", config_dir=SWEEPS)
+    assert "tuned_cartpole-hinf" in msg

@@ -127,7 +127,8 @@ def format_summary(jobs: list[dict[str, Any]], sweep_dir: Path) -> str:
         counts[entry["status"]] = counts.get(entry["status"], 0) + 1
     head = ", ".join(f"{n} {status}" for status, n in sorted(counts.items()))
     runs = f" ({len(rows)} runs)" if len(rows) != len(jobs) else ""
-    lines = [f"cdqn multirun {sweep_dir}: {len(jobs)} jobs{runs}: {head}"]
+    noun = "job" if len(jobs) == 1 else "jobs"
+    lines = [f"cdqn multirun {sweep_dir}: {len(jobs)} {noun}{runs}: {head}"]
     for job, entry in rows:
         name = Path(job["dir"]).relative_to(sweep_dir) if job["dir"] else "?"
         run = f"run {entry['run_id']}" if entry.get("run_id") else "no run"
