@@ -259,17 +259,14 @@ def sgd_deferred_row(b1, w2, b2, x, p, a, s, g, x2, p2, p_next, q_next, sx):
     (``sx = s x`` written, ``g`` kept) for :func:`forward_pending_row` or
     :func:`apply_pending_row`; the forward pass at ``x2`` with the new parameters does not
     read ``W_1``."""
-    width = b1.shape[0]
-    for j in range(width):
-        w2[a, j] += s * max(p[j], 0.0)
     b2[a] += s
     for i in range(x.shape[0]):
         sx[i] = s * x[i]
-    xx2 = _dot_in_order(x, x2)
-    for j in range(width):
+    c = s * (_dot_in_order(x, x2) + 1.0)
+    wa = w2[a]
+    for j in range(b1.shape[0]):  # one pass; each element's operations as sgd_row's
+        wa[j] += s * max(p[j], 0.0)
         b1[j] += s * g[j]
-    c = s * (xx2 + 1.0)
-    for j in range(width):
         p_next[j] = p2[j] + c * g[j]
     output_row(w2, b2, p_next, q_next)
 
