@@ -27,16 +27,19 @@ import time  # noqa: E402
 from collections.abc import Callable, Iterator  # noqa: E402
 from contextlib import contextmanager  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
+from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from hydra import compose, initialize_config_dir  # noqa: E402
 from numba import njit  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
-from cdqn.config import Config, ConfigError  # noqa: E402
+from cdqn.config import Config, ConfigError, register_configs  # noqa: E402
 from cdqn.control.factory import make_controller  # noqa: E402
 from cdqn.control.kernels import scheduled_lqr_step, state_space_step, static_gain_u  # noqa: E402
+from cdqn.envs import adopt, env_presets  # noqa: E402
 from cdqn.training import population_loop  # noqa: E402
 from cdqn.training.build import build_population, member_config  # noqa: E402
 from cdqn.training.population_loop import Member, train_population  # noqa: E402
@@ -199,9 +202,22 @@ def format_profile(name: str, prof: Profile) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> dict[str, Any]:
-    from cdqn.bench import _overrides, compose_config
+def profile_config(env: str, controller: str, width: int) -> Config:
+    """What ``python -m cdqn.train env=<env> controller=<controller> network.width=<width>``
+    trains (``env``: a preset or a gymnasium id), adopted by its environment."""
+    register_configs()
+    overrides = [
+        f"env={env}" if env in env_presets() else f"env.id={env}",
+        f"controller={controller}",
+        f"network.width={width}",
+        "train.progress=false",
+    ]
+    conf_dir = Path(__file__).resolve().parents[1] / "conf"
+    with initialize_config_dir(str(conf_dir), version_base="1.3"):
+        return OmegaConf.to_object(adopt(compose("config", overrides=overrides)).cfg)
 
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(prog="python -m cdqn.profile",
                                      description=__doc__.split("\n")[0])  # fmt: skip
     parser.add_argument("--env", default="cartpole")
@@ -211,8 +227,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--steps", type=int, default=3000, help="timed population steps")
     parser.add_argument("--warmup", type=int, default=200, help="untimed population steps")
     args = parser.parse_args(argv)
-    cfg = compose_config(_overrides(args.env, args.controller, args.width, "sqlite:///unused"))
-    prof = profile_population(OmegaConf.to_object(cfg), args.population, args.steps, args.warmup)
+    conf = profile_config(args.env, args.controller, args.width)
+    prof = profile_population(conf, args.population, args.steps, args.warmup)
     print(format_profile(f"{args.env} {args.controller} K={args.population}", prof))
     return {"us_per_member_step": prof.us_per_member_step, "shares": prof.shares()}
 

@@ -7,9 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from numba import njit
-from omegaconf import OmegaConf
 
-from cdqn.bench import _overrides, compose_config
 from cdqn.config import EnvConfig
 from cdqn.envs import make_env
 from cdqn.network import (
@@ -21,7 +19,7 @@ from cdqn.network import (
     sgd_deferred_row,
     sgd_row,
 )
-from cdqn.profile import PARTS, profile_population
+from cdqn.profile import PARTS, profile_config, profile_population
 from cdqn.vector_env import ClassicControlTwin, make_vector_env
 
 
@@ -104,8 +102,7 @@ def test_compiled_observation_maps_equal_the_wrappers(cfg: EnvConfig) -> None:
 
 
 def test_profile_shares_add_up() -> None:
-    cfg = compose_config(_overrides("cartpole", "hinf", 32, "sqlite:///unused"))
-    prof = profile_population(OmegaConf.to_object(cfg), k=3, steps=200, warmup=20)
+    prof = profile_population(profile_config("cartpole", "hinf", 32), k=3, steps=200, warmup=20)
     assert prof.member_steps == 600
     assert set(prof.shares()) == set(PARTS)
     assert sum(prof.shares().values()) == pytest.approx(1.0)
