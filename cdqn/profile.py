@@ -55,6 +55,7 @@ from cdqn.training.signals import SignalBuffer  # noqa: E402
 PARTS = ("environment", "exploration", "act (forward at s after a reset, argmax)", "network",
          "controller", "recording", "loop (Python)")  # fmt: skip
 clock = time.process_time
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
 
 @dataclass
@@ -120,7 +121,10 @@ def profile_population(conf: Config, k: int, steps: int, warmup: int) -> Profile
     seeds = list(range(conf.seed, conf.seed + k))
     agent, venv = build_population(conf, setup, seeds)
     if not isinstance(agent, ControlledPopulation):
-        raise ConfigError(f"controller.name={conf.controller.name!r}: profiles controlled agents")
+        raise ConfigError(
+            f"controller.name={conf.controller.name!r}: the profile takes the controlled agents "
+            "(none, h2, hinf, hinf_f)"
+        )
     cfg = OmegaConf.structured(conf)
     members = [Member(s, member_config(cfg, s)) for s in seeds]
     prof = Profile()
@@ -212,8 +216,7 @@ def profile_config(env: str, controller: str, width: int) -> Config:
         f"network.width={width}",
         "train.progress=false",
     ]
-    conf_dir = Path(__file__).resolve().parents[1] / "conf"
-    with initialize_config_dir(str(conf_dir), version_base="1.3"):
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
         return OmegaConf.to_object(adopt(compose("config", overrides=overrides)).cfg)
 
 
@@ -221,7 +224,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(prog="python -m cdqn.profile",
                                      description=__doc__.split("\n")[0])  # fmt: skip
     parser.add_argument("--env", default="cartpole")
-    parser.add_argument("--controller", default="hinf")
+    controllers = sorted(
+        p.stem for p in (CONF_DIR / "controller").glob("*.yaml") if p.stem != "ddqn"
+    )
+    parser.add_argument("--controller", default="hinf", choices=controllers)
     parser.add_argument("--width", type=int, default=2500)
     parser.add_argument("--population", type=int, default=10)
     parser.add_argument("--steps", type=int, default=3000, help="timed population steps")
