@@ -137,17 +137,52 @@ hidden units run as vectorised partial sums: the same code for every member and 
 population size, so a member's numbers never depend on ``K`` (``tests/test_fast_path.py``)."""
 
 
+_BLOCK = 512
+"""Hidden units per block of :func:`forward_row`: the block of ``p`` stays in L1 while every
+input's row of ``W_1ᵀ`` passes through it."""
+
+
 @njit(**_JIT)
 def forward_row(w1t, b1, w2, b2, x, p, q):
     """One member: ``p = b_1 + Σ_i x_i W_1ᵀ[i]``, ``q = W_2 relu(p) + b_2``."""
+    forward_pending_row(w1t, b1, w2, b2, x, p, q, x, b1, False)
+
+
+@njit(**_JIT)
+def forward_pending_row(w1t, b1, w2, b2, x, p, q, sx, g, pending):
+    """:func:`forward_row` with, when ``pending``, the ``W_1`` part of the last SGD step
+    applied on the way (:func:`sgd_deferred_row`): ``W_1ᵀ[i] += sx_i g`` row by row, each
+    element updated as :func:`sgd_row` updates it and then multiplied into ``p``, so one
+    pass over ``W_1`` does both.  Per hidden unit ``j`` the sum
+    ``p_j = b_1[j] + x_0 W_1ᵀ[0, j] + x_1 W_1ᵀ[1, j] + …`` is taken in input order, as
+    unblocked, so the blocks change no bit."""
     n_obs, width = w1t.shape
-    for j in range(width):
-        p[j] = b1[j]
-    for i in range(n_obs):
-        xi = x[i]
-        for j in range(width):
-            p[j] += w1t[i, j] * xi
+    for j0 in range(0, width, _BLOCK):
+        n = min(j0 + _BLOCK, width) - j0
+        pb, bb = p[j0 : j0 + n], b1[j0 : j0 + n]
+        for jj in range(n):
+            pb[jj] = bb[jj]
+        for i in range(n_obs):
+            xi, wi = x[i], w1t[i, j0 : j0 + n]
+            if pending:
+                si, gb = sx[i], g[j0 : j0 + n]
+                for jj in range(n):
+                    w = wi[jj] + si * gb[jj]
+                    wi[jj] = w
+                    pb[jj] += w * xi
+            else:
+                for jj in range(n):
+                    pb[jj] += wi[jj] * xi
     output_row(w2, b2, p, q)
+
+
+@njit(**_JIT)
+def apply_pending_row(w1t, sx, g):
+    """The deferred ``W_1ᵀ[i] += sx_i g`` of :func:`sgd_deferred_row`, on its own."""
+    for i in range(w1t.shape[0]):
+        si, wi = sx[i], w1t[i]
+        for j in range(w1t.shape[1]):
+            wi[j] = wi[j] + si * g[j]
 
 
 @njit(**_JIT)
@@ -204,6 +239,34 @@ def sgd_row(w1t, b1, w2, b2, x, p, a, s, g, x2, p2, p_next, q_next):
         b1[j] += s * g[j]
     c = s * (xx2 + 1.0)
     for j in range(width):
+        p_next[j] = p2[j] + c * g[j]
+    output_row(w2, b2, p_next, q_next)
+
+
+@njit(cache=True, fastmath={"contract"})
+def _dot_in_order(x, y):
+    """``Σ_i x_i y_i`` accumulated in index order (no reassociation: :func:`sgd_row`'s
+    outer loop over the inputs sums ``x·x2`` in this order)."""
+    acc = 0.0
+    for i in range(x.shape[0]):
+        acc += x[i] * y[i]
+    return acc
+
+
+@njit(**_JIT)
+def sgd_deferred_row(b1, w2, b2, x, p, a, s, g, x2, p2, p_next, q_next, sx):
+    """:func:`sgd_row` except for ``W_1``: its update ``W_1ᵀ[i] += sx_i g`` is left pending
+    (``sx = s x`` written, ``g`` kept) for :func:`forward_pending_row` or
+    :func:`apply_pending_row`; the forward pass at ``x2`` with the new parameters does not
+    read ``W_1``."""
+    b2[a] += s
+    for i in range(x.shape[0]):
+        sx[i] = s * x[i]
+    c = s * (_dot_in_order(x, x2) + 1.0)
+    wa = w2[a]
+    for j in range(b1.shape[0]):  # one pass; each element's operations as sgd_row's
+        wa[j] += s * max(p[j], 0.0)
+        b1[j] += s * g[j]
         p_next[j] = p2[j] + c * g[j]
     output_row(w2, b2, p_next, q_next)
 

@@ -333,11 +333,50 @@ class ClassicControlTwin:
         _count_steps(self.elapsed, -1 if self.cap is None else self.cap, truncated)
         if self.indices is not None:
             obs = obs[:, self.indices]
-        if self.scaling is not None:  # the members' own wrappers, on all rows at once
-            obs = self.scaling.observation(obs)
-        if self.features is not None:
-            obs = self.features.features(obs)
+        if self.scaling is not None or self.features is not None:
+            obs = self._observation_maps(obs)
         return VectorStep(obs, reward, terminated, truncated)
+
+    def _observation_maps(self, obs: np.ndarray) -> np.ndarray:
+        """The members' :class:`ObservationScale` and :class:`RadialFeatures` on all rows at
+        once: one compiled pass (:func:`_scale_and_exponents`) and, for features, one
+        ``np.exp`` (NumPy's, as the wrapper's)."""
+        none = np.zeros(0, obs.dtype)
+        offset, scale = (
+            (self.scaling.offset, self.scaling.scale) if self.scaling is not None else (none, none)
+        )
+        if self.features is None:
+            out = np.empty_like(obs)
+            _scale_and_exponents(obs, offset, scale, np.zeros((0, 0), obs.dtype), none, out)
+            return out
+        f = self.features
+        out = np.empty((len(obs), len(f.centres)), f.dtype)
+        _scale_and_exponents(obs, offset, scale, f.centres, f.sigma, out)
+        return np.exp(out)
+
+
+@njit(cache=True)  # strict IEEE arithmetic, in the wrappers' dtype (float32)
+def _scale_and_exponents(obs, offset, scale, centres, sigma, out):
+    """Per row of ``obs``: ``s = (obs − offset) ⊙ scale`` (:class:`ObservationScale`; skipped
+    when ``offset`` is empty), then, when there are ``centres``, the exponents
+    ``−½ Σ_i ((s_i − c_ji)/σ_i)²`` of :meth:`RadialFeatures.features` (summed in index
+    order, in the observation's dtype, as NumPy sums the last axis), else ``s`` itself."""
+    n, d = obs.shape
+    s = np.empty(d, obs.dtype)
+    half = obs.dtype.type(-0.5)
+    for k in range(n):
+        for i in range(d):
+            s[i] = (obs[k, i] - offset[i]) * scale[i] if offset.shape[0] else obs[k, i]
+        if centres.shape[0] == 0:
+            for i in range(d):
+                out[k, i] = s[i]
+            continue
+        for j in range(centres.shape[0]):
+            acc = obs.dtype.type(0.0)
+            for i in range(d):
+                z = (s[i] - centres[j, i]) / sigma[i]
+                acc += z * z
+            out[k, j] = half * acc
 
 
 @njit(cache=True)

@@ -17,7 +17,8 @@ import cdqn
 from cdqn.training import LAYERS
 
 ROOT = Path(cdqn.__file__).resolve().parent
-ENTRY_POINTS = {"cdqn.train", "cdqn.synthesize", "cdqn.tune", "cdqn.bench", "cdqn.evaluate"}
+ENTRY_POINTS = {"cdqn.train", "cdqn.synthesize", "cdqn.tune", "cdqn.bench", "cdqn.evaluate",
+                "cdqn.profile"}  # fmt: skip
 TRAINING = "cdqn.training"
 TUNING = "cdqn.tuning"
 """Above the training side: studies run populations; only the ``cdqn.tune`` entry point

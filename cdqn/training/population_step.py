@@ -11,11 +11,16 @@ members at once.  Per step and member it runs exactly the single agent's algorit
    ``θ ← θ + α (e + u) ∂Q(s,a)/∂θ``; the step's signal row; the divergence pre-check.
 
 Each is one compiled loop over the members (:func:`_act_kernel`, :func:`_update_kernel`)
-built from the row functions a single run uses (:func:`cdqn.network.forward_row`,
-:func:`cdqn.network.td_row`, :func:`cdqn.network.sgd_row`) and the controller arithmetic of
+built from the row functions of :mod:`cdqn.network` and the controller arithmetic of
 :mod:`cdqn.control.kernels`, so the per-step Python is paid once for ``K`` members and each
 member computes the numbers of the single run of its seed, bit for bit
-(``tests/test_population.py``).  Exploration is drawn ahead in blocks
+(``tests/test_population.py``).  The one difference from a single run's step is when
+``W_1`` changes: a member's SGD step leaves its ``W_1`` update pending
+(:func:`cdqn.network.sgd_deferred_row`) and the member's next forward pass applies it
+element by element on its way through ``W_1`` (:func:`cdqn.network.forward_pending_row`),
+with the same operations, so one pass over ``W_1`` per step does both.  Nothing reads
+``W_1`` in between; :meth:`ControlledPopulation.flush` applies what is pending before the
+parameters are read from outside.  Exploration is drawn ahead in blocks
 (:func:`cdqn.agents.base.explore_ahead`); it depends on nothing but each member's generator.
 """
 
@@ -39,7 +44,14 @@ from cdqn.control.runtime import (
     StateSpace,
     StaticGain,
 )
-from cdqn.network import QNetwork, StackedTwoLayer, forward_row, sgd_row, td_row
+from cdqn.network import (
+    QNetwork,
+    StackedTwoLayer,
+    apply_pending_row,
+    forward_pending_row,
+    sgd_deferred_row,
+    td_row,
+)
 from cdqn.vector_env import VectorStep
 
 NO_CONTROL, STATIC_GAIN, STATE_SPACE, SCHEDULED_LQR = 0, 1, 2, 3
@@ -258,16 +270,20 @@ class ControlledPopulation:
         self.x = np.full((k, spec.n_obs), np.nan, dtype)
         self.p = np.empty((k, spec.width), dtype)
         self.q = np.empty((k, spec.n_actions), dtype)
-        # One member's step at a time: the pass at s' and ∂Q_a/∂b_1 (kept small so that
-        # they stay in cache); Θ1, Θ2 and α δ rounded to the network's dtype, as the
-        # single run's arrays hold them.
+        # One member's step at a time: the pass at s' (kept small so that it stays in
+        # cache); Θ1, Θ2 and α δ rounded to the network's dtype, as the single run's arrays
+        # hold them.
         self.scratch = (
             np.empty(spec.n_obs, dtype),
             np.empty(spec.width, dtype),
             np.empty(spec.n_actions, dtype),
-            np.empty(spec.width, dtype),
             np.empty(3, dtype),
         )
+        # Each member's last step's ∂Q_a/∂b_1 and α δ x: its pending W_1 update, if
+        # ``pending`` (module docstring).
+        self.g = np.zeros((k, spec.width), dtype)
+        self.sx = np.zeros((k, spec.n_obs), dtype)
+        self.pending = np.zeros(k, dtype=np.bool_)
         self.actions = np.empty(k, dtype=np.int64)
         self.flags = np.zeros(k, dtype=np.int8)
         self.loss_seen = np.zeros(k, dtype=np.bool_)
@@ -289,9 +305,13 @@ class ControlledPopulation:
     def act(self, obs: np.ndarray) -> np.ndarray:
         """ε-greedy actions ``(K,)`` (the array is reused by the next call)."""
         n = self.net
-        _act_kernel(n.w1t, n.b1, n.w2, n.b2, obs, self.x, self.p, self.q, self.explore.next(),
-                    self.actions)  # fmt: skip
+        _act_kernel(n.w1t, n.b1, n.w2, n.b2, obs, self.x, self.p, self.q, self.sx, self.g,
+                    self.pending, self.explore.next(), self.actions)  # fmt: skip
         return self.actions
+
+    def flush(self) -> None:
+        """Apply every member's pending ``W_1`` update (module docstring)."""
+        _flush_kernel(self.net.w1t, self.sx, self.g, self.pending)
 
     def update(
         self,
@@ -315,7 +335,8 @@ class ControlledPopulation:
         """
         n, c = self.net, self.controller
         return _update_kernel(
-            n.w1t, n.b1, n.w2, n.b2, self.x, self.p, self.q, *self.scratch, actions,
+            n.w1t, n.b1, n.w2, n.b2, self.x, self.p, self.q, *self.scratch, self.sx, self.g,
+            self.pending, actions,
             step.reward, step.obs, step.terminated, step.truncated, self.hyper,
             self.bootstrap_terminal, c.kind, c.gains, c.loss_weight, c.Ad, c.Bd, c.C, c.D, c.x,
             c.w_x, c.w_c, c.research, c.target, c.unsolved, self.x_e, ep, t, ret, rows, q_limit,
@@ -328,8 +349,8 @@ class ControlledPopulation:
         n, c = self.net, self.controller
         dtype = self.x.dtype
         return _replay_kernel(
-            k, n.w1t, n.b1, n.w2, n.b2, self.x, self.p, self.q, *self.scratch,
-            np.ascontiguousarray(tail.obs, dtype=dtype), tail.actions, tail.rewards,
+            k, n.w1t, n.b1, n.w2, n.b2, self.x, self.p, self.q, *self.scratch, self.sx, self.g,
+            self.pending, np.ascontiguousarray(tail.obs, dtype=dtype), tail.actions, tail.rewards,
             np.ascontiguousarray(tail.next_obs, dtype=dtype), tail.terminated, repeats,
             self.hyper, self.bootstrap_terminal, c.kind, c.gains, c.loss_weight, c.Ad, c.Bd, c.C,
             c.D, c.x, c.w_x, c.w_c, c.research, c.target, c.unsolved, self.x_e, q_limit,
@@ -337,6 +358,8 @@ class ControlledPopulation:
 
     def select(self, keep: np.ndarray) -> None:
         """Keep only the members ``keep`` (indices, in that order)."""
+        self.flush()
+        self.g, self.sx, self.pending = self.g[keep], self.sx[keep], self.pending[keep]
         self.net.select(keep)
         self.controller.select(keep)
         self.explore.select(keep)
@@ -349,6 +372,7 @@ class ControlledPopulation:
         """Member ``i``'s state between two steps: parameters, the cached forward pass at
         ``s``, the integrator ``x_e``, controller and exploration state (the population
         agents' checkpoint protocol, :mod:`cdqn.training.population_checkpoint`)."""
+        self.flush()
         n = self.net
         return {
             "w1t": n.w1t[i].copy(), "b1": n.b1[i].copy(), "w2": n.w2[i].copy(),
@@ -363,6 +387,7 @@ class ControlledPopulation:
         """Put member ``i`` into ``state`` (from :meth:`state_dict`)."""
         n = self.net
         n.w1t[i], n.b1[i], n.w2[i], n.b2[i] = state["w1t"], state["b1"], state["w2"], state["b2"]
+        self.pending[i] = False
         self.x[i], self.p[i], self.q[i] = state["x"], state["p"], state["q"]
         self.x_e[i], self.loss_seen[i] = state["x_e"], state["loss_seen"]
         self.controller.load_state_dict(i, state["controller"])
@@ -371,15 +396,24 @@ class ControlledPopulation:
     def network(self, i: int) -> QNetwork:
         """Member ``i``'s network as a :class:`QNetwork`."""
         net = QNetwork(self.spec)
+        self.flush()
         self.net.copy_to(i, net)
         return net
 
 
 @njit(cache=True)
-def _act_kernel(w1t, b1, w2, b2, obs, x, p, q, plan, actions):
-    """Per member: the forward pass at ``obs`` unless ``x`` already holds it (as
-    :meth:`cdqn.network.StackedTwoLayer.forward` with ``reuse``), then the planned random
-    action or ``argmax Q(obs, ·)``."""
+def _flush_kernel(w1t, sx, g, pending):
+    for k in range(w1t.shape[0]):
+        if pending[k]:
+            apply_pending_row(w1t[k], sx[k], g[k])
+            pending[k] = False
+
+
+@njit(cache=True)
+def _act_kernel(w1t, b1, w2, b2, obs, x, p, q, sx, g, pending, plan, actions):
+    """Per member: the forward pass at ``obs`` (applying a pending ``W_1`` update) unless
+    ``x`` already holds it (as :meth:`cdqn.network.StackedTwoLayer.forward` with ``reuse``),
+    then the planned random action or ``argmax Q(obs, ·)``."""
     for k in range(obs.shape[0]):
         same = True
         for i in range(obs.shape[1]):
@@ -388,22 +422,27 @@ def _act_kernel(w1t, b1, w2, b2, obs, x, p, q, plan, actions):
         if not same:
             for i in range(obs.shape[1]):
                 x[k, i] = obs[k, i]
-            forward_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], q[k])
+            forward_pending_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], q[k], sx[k], g[k],
+                                pending[k])  # fmt: skip
+            pending[k] = False
         actions[k] = plan[k] if plan[k] >= 0 else np.argmax(q[k])
 
 
 @njit(cache=True)
-def _controlled_step(k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, a, reward, terminated,
-                     alpha, discount, bootstrap_terminal, kind, gains, loss_weight, Ad, Bd, C, D,
-                     xc, w_x, w_c, research, target, unsolved, x_e):  # fmt: skip
+def _controlled_step(k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, scratch, sx, g, pending, a,
+                     reward, terminated, alpha, discount, bootstrap_terminal, kind, gains,
+                     loss_weight, Ad, Bd, C, D, xc, w_x, w_c, research, target, unsolved,
+                     x_e):  # fmt: skip
     """Member ``k``'s controlled step on the transition ``(x[k], a, reward, x2)``, in the order
     of operations of :meth:`cdqn.agents.ControlledAgent.update`: ``x[k], p[k], q[k]`` hold the
     pass at ``s``, ``x2`` holds ``s'``; afterwards they hold the pass at ``s'`` with the new
-    parameters.  Returns ``(Q1, Q2, u, x_e, Θ1, Θ2, loss)``."""
-    forward_row(w1t[k], b1[k], w2[k], b2[k], x2, p2, q2s)
+    parameters, and the step's ``W_1`` update is pending (module docstring).  Returns
+    ``(Q1, Q2, u, x_e, Θ1, Θ2, loss)``."""
+    gk = g[k]
+    forward_pending_row(w1t[k], b1[k], w2[k], b2[k], x2, p2, q2s, sx[k], gk, pending[k])
     b = np.argmax(q2s)
     q1, q2 = float(q[k, a]), float(q2s[b])
-    scratch[0], scratch[1] = td_row(w2[k], x[k], p[k], x2, p2, a, b, g)
+    scratch[0], scratch[1] = td_row(w2[k], x[k], p[k], x2, p2, a, b, gk)
     theta1, theta2 = float(scratch[0]), float(scratch[1])
     q_next = q2 if (bootstrap_terminal or not terminated) else 0.0
 
@@ -426,17 +465,19 @@ def _controlled_step(k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, a, re
     loss = 0.5 * loss_weight[k] * delta * delta
     scratch[2] = alpha * delta
     # the step; the member's pass becomes the one at s' with the new parameters
-    sgd_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], a, scratch[2], g, x2, p2, p[k], q[k])
+    sgd_deferred_row(b1[k], w2[k], b2[k], x[k], p[k], a, scratch[2], gk, x2, p2, p[k], q[k],
+                     sx[k])  # fmt: skip
+    pending[k] = True
     for i in range(x2.shape[0]):
         x[k, i] = x2[i]
     return q1, q2, u, xe, theta1, theta2, loss
 
 
 @njit(cache=True)
-def _update_kernel(w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, actions, reward,
-                   next_obs, terminated, truncated, hyper, bootstrap_terminal, kind, gains,
-                   loss_weight, Ad, Bd, C, D, xc, w_x, w_c, research, target, unsolved, x_e, ep,
-                   t, ret, rows, q_limit, flags, loss_seen):  # fmt: skip
+def _update_kernel(w1t, b1, w2, b2, x, p, q, x2, p2, q2s, scratch, sx, g, pending, actions,
+                   reward, next_obs, terminated, truncated, hyper, bootstrap_terminal, kind,
+                   gains, loss_weight, Ad, Bd, C, D, xc, w_x, w_c, research, target, unsolved,
+                   x_e, ep, t, ret, rows, q_limit, flags, loss_seen):  # fmt: skip
     """:meth:`ControlledPopulation.update` (module docstring), member by member
     (:func:`_controlled_step`)."""
     alpha, discount = hyper[0], hyper[1]
@@ -445,9 +486,9 @@ def _update_kernel(w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, actions, r
         for i in range(x2.shape[0]):
             x2[i] = next_obs[k, i]
         q1, q2, u, xe, theta1, theta2, loss = _controlled_step(
-            k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, actions[k], reward[k],
-            terminated[k], alpha, discount, bootstrap_terminal, kind, gains, loss_weight, Ad, Bd,
-            C, D, xc, w_x, w_c, research, target, unsolved, x_e,
+            k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, scratch, sx, g, pending, actions[k],
+            reward[k], terminated[k], alpha, discount, bootstrap_terminal, kind, gains,
+            loss_weight, Ad, Bd, C, D, xc, w_x, w_c, research, target, unsolved, x_e,
         )  # fmt: skip
         row = rows[k]
         row[0], row[1], row[2], row[3], row[4] = ep[k], t[k], reward[k], q1, q2
@@ -467,10 +508,10 @@ def _update_kernel(w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, actions, r
 
 
 @njit(cache=True)
-def _replay_kernel(k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, obs, actions, rewards,
-                   next_obs, terminated, repeats, hyper, bootstrap_terminal, kind, gains,
-                   loss_weight, Ad, Bd, C, D, xc, w_x, w_c, research, target, unsolved, x_e,
-                   q_limit):  # fmt: skip
+def _replay_kernel(k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, scratch, sx, g, pending, obs,
+                   actions, rewards, next_obs, terminated, repeats, hyper, bootstrap_terminal,
+                   kind, gains, loss_weight, Ad, Bd, C, D, xc, w_x, w_c, research, target,
+                   unsolved, x_e, q_limit):  # fmt: skip
     """Episodic replay of member ``k``: ``repeats`` passes over the transitions
     ``(obs[i], actions[i], rewards[i], next_obs[i], terminated[i])`` in order, each through
     :func:`_controlled_step` after the forward pass at ``obs[i]`` (reused when the member's
@@ -488,13 +529,15 @@ def _replay_kernel(k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, obs, ac
             if not same:
                 for i in range(obs.shape[1]):
                     x[k, i] = obs[j, i]
-                forward_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], q[k])
+                forward_pending_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], q[k], sx[k], g[k],
+                                    pending[k])  # fmt: skip
+                pending[k] = False
             for i in range(x2.shape[0]):
                 x2[i] = next_obs[j, i]
             q1, q2, u, xe, theta1, theta2, loss = _controlled_step(
-                k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, scratch, actions[j], rewards[j],
-                terminated[j], alpha, discount, bootstrap_terminal, kind, gains, loss_weight, Ad,
-                Bd, C, D, xc, w_x, w_c, research, target, unsolved, x_e,
+                k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, scratch, sx, g, pending, actions[j],
+                rewards[j], terminated[j], alpha, discount, bootstrap_terminal, kind, gains,
+                loss_weight, Ad, Bd, C, D, xc, w_x, w_c, research, target, unsolved, x_e,
             )  # fmt: skip
             if not (math.isfinite(u + xe + loss) and max(abs(q1), abs(q2)) <= q_limit):
                 return -(n + 1)

@@ -1,0 +1,247 @@
+"""Where a controlled population's member-step goes: shares of the time per part.
+
+    python -m cdqn.profile                                     # CartPole, hinf, K = 10
+    python -m cdqn.profile --env mountaincar --controller h2 --steps 3000
+
+Trains a population (:func:`cdqn.training.population_loop.train_population`, one thread,
+no tracking store) and times, per population step, what the loop calls: the environment
+twin's step and resets (:mod:`cdqn.vector_env`), the exploration plan, the act call's
+forward passes, the update kernel, and the recording (signal rows moved into each member's
+buffer, episode statistics).  The rest of the loop's time is its own Python.  The update
+kernel's controller arithmetic (:mod:`cdqn.control.kernels`) is timed apart afterwards on
+the members' controller arrays and subtracted from the update, which leaves the network's
+share (forward pass at s', Θ1/Θ2, SGD step) with the step's signal row.  Times are CPU
+seconds of this process; the first ``--warmup`` population steps are not counted.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from collections.abc import Callable, Iterator  # noqa: E402
+from contextlib import contextmanager  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from hydra import compose, initialize_config_dir  # noqa: E402
+from numba import njit  # noqa: E402
+from omegaconf import OmegaConf  # noqa: E402
+
+from cdqn.config import Config, ConfigError, register_configs  # noqa: E402
+from cdqn.control.factory import make_controller  # noqa: E402
+from cdqn.control.kernels import scheduled_lqr_step, state_space_step, static_gain_u  # noqa: E402
+from cdqn.envs import adopt, env_presets  # noqa: E402
+from cdqn.training import population_loop  # noqa: E402
+from cdqn.training.build import build_population, member_config  # noqa: E402
+from cdqn.training.population_loop import Member, train_population  # noqa: E402
+from cdqn.training.population_step import (  # noqa: E402
+    SCHEDULED_LQR,
+    STATE_SPACE,
+    STATIC_GAIN,
+    ControlledPopulation,
+    ControllerArrays,
+)
+from cdqn.training.signals import SignalBuffer  # noqa: E402
+
+PARTS = ("environment", "exploration", "act (forward at s after a reset, argmax)", "network",
+         "controller", "recording", "loop (Python)")  # fmt: skip
+clock = time.process_time
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+
+
+@dataclass
+class Profile:
+    """Seconds per part over ``member_steps`` timed member-steps."""
+
+    member_steps: int = 0
+    seconds: dict[str, float] = field(default_factory=lambda: dict.fromkeys(PARTS, 0.0))
+    total: float = 0.0
+
+    @property
+    def us_per_member_step(self) -> float:
+        return 1e6 * self.total / self.member_steps
+
+    def shares(self) -> dict[str, float]:
+        return {k: v / self.total for k, v in self.seconds.items()}
+
+
+class _Timers:
+    """Accumulates the CPU time of wrapped calls per part while ``on`` is set."""
+
+    def __init__(self, profile: Profile) -> None:
+        self.profile, self.on = profile, False
+
+    def wrap(self, part: str, fn: Callable[..., Any], inner: str | None = None) -> Callable:
+        """``fn`` timed into ``part``; time spent in ``inner`` during the call is not."""
+        seconds = self.profile.seconds
+
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            if not self.on:
+                return fn(*args, **kwargs)
+            before = seconds[inner] if inner else 0.0
+            t0 = clock()
+            out = fn(*args, **kwargs)
+            seconds[part] += clock() - t0 - ((seconds[inner] - before) if inner else 0.0)
+            return out
+
+        return timed
+
+
+class _TimedSignals(SignalBuffer):
+    timers: _Timers
+
+    def extend(self, rows: np.ndarray) -> None:
+        self.timers.wrap("recording", super().extend)(rows)
+
+
+@contextmanager
+def _timed_episode_stats(timers: _Timers) -> Iterator[None]:
+    original = population_loop.episode_stats
+    population_loop.episode_stats = timers.wrap("recording", original)
+    try:
+        yield
+    finally:
+        population_loop.episode_stats = original
+
+
+def profile_population(conf: Config, k: int, steps: int, warmup: int) -> Profile:
+    """Train seeds ``conf.seed … conf.seed+k−1`` as a population for ``warmup + steps``
+    population steps and time its parts (module docstring)."""
+    torch.set_num_threads(1)
+    setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
+    seeds = list(range(conf.seed, conf.seed + k))
+    agent, venv = build_population(conf, setup, seeds)
+    if not isinstance(agent, ControlledPopulation):
+        raise ConfigError(
+            f"controller.name={conf.controller.name!r}: the profile takes the controlled agents "
+            "(none, h2, hinf, hinf_f)"
+        )
+    cfg = OmegaConf.structured(conf)
+    members = [Member(s, member_config(cfg, s)) for s in seeds]
+    prof = Profile()
+    timers = _Timers(prof)
+    for m in members:
+        m.signals = _TimedSignals()
+        m.signals.timers = timers
+    agent.explore.next = timers.wrap("exploration", agent.explore.next)
+    agent.act = timers.wrap("act (forward at s after a reset, argmax)", agent.act, "exploration")
+    agent.update = timers.wrap("network", agent.update)
+    venv.step = timers.wrap("environment", venv.step)
+    venv.reset = timers.wrap("environment", venv.reset)
+    count = {"steps": 0, "t0": 0.0}
+
+    def tick() -> bool:
+        count["steps"] += 1
+        if count["steps"] == warmup:
+            timers.on, count["t0"] = True, clock()
+        elif count["steps"] > warmup:
+            prof.member_steps += len(members) - sum(m.status != "RUNNING" for m in members)
+        if count["steps"] == warmup + steps:
+            prof.total = clock() - count["t0"]
+            return True
+        return False
+
+    with _timed_episode_stats(timers):
+        train_population(agent, venv, members, episodes=10**9, discount=conf.train.discount,
+                         q_limit=conf.train.q_limit, should_stop=tick)  # fmt: skip
+    prof.total = prof.total or clock() - count["t0"]
+    control = controller_seconds(agent.controller, prof.member_steps)
+    prof.seconds["controller"] = control
+    prof.seconds["network"] -= control
+    prof.seconds["loop (Python)"] = prof.total - sum(prof.seconds.values())
+    return prof
+
+
+def controller_seconds(c: ControllerArrays, member_steps: int) -> float:
+    """CPU seconds of ``member_steps`` controller steps on copies of ``c``'s arrays."""
+    k = len(c.loss_weight)
+    gains, x, lw = c.gains.copy(), c.x.copy() * 0.0, c.loss_weight.copy()
+    unsolved = c.unsolved.copy()
+    args = (gains, lw, c.Ad, c.Bd, c.C, c.D, x, c.w_x, c.w_c, c.research, c.target, unsolved)
+    _controller_loop(1, c.kind, *args)  # compiled (or loaded) before it is timed
+    t0 = clock()
+    _controller_loop(member_steps // k, c.kind, *args)
+    return clock() - t0
+
+
+@njit(cache=True)
+def _controller_loop(n, kind, gains, loss_weight, Ad, Bd, C, D, xc, w_x, w_c, research, target,
+                     unsolved):  # fmt: skip
+    """``n`` steps of every member's controller on representative signals (Θ1 = 300,
+    Θ2 = 290, Q1 = 1, Q2 = 1.01, x_e = 1e-3)."""
+    acc = 0.0
+    for step in range(n):
+        for k in range(gains.shape[0]):
+            xe, q1, q2 = 1e-3 * (step % 7), 1.0, 1.01
+            if kind == STATIC_GAIN:
+                u = static_gain_u(gains[k, 0], gains[k, 1], gains[k, 2], xe, q1, q2)
+            elif kind == STATE_SPACE:
+                u = state_space_step(Ad, Bd, C, D, xc[k], xe, q1, q2)
+                xc[k, :] = 0.0
+            elif kind == SCHEDULED_LQR:
+                u, loss_weight[k], solved = scheduled_lqr_step(
+                    300.0 + step % 3, 290.0, 1.0, w_x, w_c, research, target, gains[k], xe, q1, q2
+                )
+                unsolved[k] += not solved
+            else:
+                u = 0.0
+            acc += u
+    return acc
+
+
+def format_profile(name: str, prof: Profile) -> str:
+    lines = [f"{name}: {prof.us_per_member_step:.2f} µs per member-step "
+             f"({prof.member_steps} member-steps)"]  # fmt: skip
+    for part, share in prof.shares().items():
+        lines.append(f"  {part:<42}{100 * share:>6.1f} %")
+    return "\n".join(lines)
+
+
+def profile_config(env: str, controller: str, width: int) -> Config:
+    """What ``python -m cdqn.train env=<env> controller=<controller> network.width=<width>``
+    trains (``env``: a preset or a gymnasium id), adopted by its environment."""
+    register_configs()
+    overrides = [
+        f"env={env}" if env in env_presets() else f"env.id={env}",
+        f"controller={controller}",
+        f"network.width={width}",
+        "train.progress=false",
+    ]
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        return OmegaConf.to_object(adopt(compose("config", overrides=overrides)).cfg)
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    parser = argparse.ArgumentParser(prog="python -m cdqn.profile",
+                                     description=__doc__.split("\n")[0])  # fmt: skip
+    parser.add_argument("--env", default="cartpole")
+    controllers = sorted(
+        p.stem for p in (CONF_DIR / "controller").glob("*.yaml") if p.stem != "ddqn"
+    )
+    parser.add_argument("--controller", default="hinf", choices=controllers)
+    parser.add_argument("--width", type=int, default=2500)
+    parser.add_argument("--population", type=int, default=10)
+    parser.add_argument("--steps", type=int, default=3000, help="timed population steps")
+    parser.add_argument("--warmup", type=int, default=200, help="untimed population steps")
+    args = parser.parse_args(argv)
+    conf = profile_config(args.env, args.controller, args.width)
+    prof = profile_population(conf, args.population, args.steps, args.warmup)
+    print(format_profile(f"{args.env} {args.controller} K={args.population}", prof))
+    return {"us_per_member_step": prof.us_per_member_step, "shares": prof.shares()}
+
+
+if __name__ == "__main__":
+    try:
+        main(sys.argv[1:])
+    except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        sys.exit(2)

@@ -1,0 +1,109 @@
+"""The population's step kernels compute a single run's numbers by other routes: the deferred
+``W_1`` update and the blocked forward pass (:mod:`cdqn.network`), the compiled observation
+maps of the environment twin (:mod:`cdqn.vector_env`); and the profile adds up."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from numba import njit
+
+from cdqn.config import EnvConfig
+from cdqn.envs import make_env
+from cdqn.network import (
+    _JIT,
+    apply_pending_row,
+    forward_pending_row,
+    forward_row,
+    output_row,
+    sgd_deferred_row,
+    sgd_row,
+)
+from cdqn.profile import PARTS, profile_config, profile_population
+from cdqn.vector_env import ClassicControlTwin, make_vector_env
+
+
+@njit(**_JIT)
+def _unblocked_forward(w1t, b1, w2, b2, x, p, q):
+    """The forward pass one input at a time over all hidden units (no blocks)."""
+    for j in range(w1t.shape[1]):
+        p[j] = b1[j]
+    for i in range(w1t.shape[0]):
+        for j in range(w1t.shape[1]):
+            p[j] += w1t[i, j] * x[i]
+    output_row(w2, b2, p, q)
+
+
+@pytest.mark.parametrize(("n_obs", "n_actions", "width"), [(4, 2, 2500), (36, 3, 700), (6, 3, 33)])
+def test_deferred_step_equals_the_immediate_step_bit_for_bit(
+    n_obs: int, n_actions: int, width: int
+) -> None:
+    """Step, then forward pass at the next input: the single run's route (``sgd_row``, then
+    ``forward_row``) and the population's (``sgd_deferred_row``, then ``forward_pending_row``
+    or ``apply_pending_row``) leave the same parameters and passes; the blocked forward
+    pass equals the unblocked one."""
+    gen = np.random.default_rng(n_obs)
+    for _ in range(10):
+        params = [
+            gen.normal(size=s) for s in ((n_obs, width), width, (n_actions, width), n_actions)
+        ]
+        x, x2, x3 = (gen.normal(size=n_obs) for _ in range(3))
+        p, q = np.empty(width), np.empty(n_actions)
+        forward_row(*params, x, p, q)
+        p_ref, q_ref = np.empty(width), np.empty(n_actions)
+        _unblocked_forward(*params, x, p_ref, q_ref)
+        assert np.array_equal(p, p_ref) and np.array_equal(q, q_ref)
+        p2, q2 = np.empty(width), np.empty(n_actions)
+        forward_row(*params, x2, p2, q2)
+        g, s = np.where(p > 0.0, params[2][1], 0.0), gen.normal() * 1e-3
+        immediate, deferred = [a.copy() for a in params], [a.copy() for a in params]
+        p_i, q_i = np.empty(width), np.empty(n_actions)
+        p_d, q_d = np.empty(width), np.empty(n_actions)
+        sgd_row(*immediate, x, p, 1, s, g, x2, p2, p_i, q_i)
+        sx = np.empty(n_obs)
+        sgd_deferred_row(*deferred[1:], x, p, 1, s, g, x2, p2, p_d, q_d, sx)
+        assert np.array_equal(p_i, p_d) and np.array_equal(q_i, q_d)
+        applied = [a.copy() for a in deferred]
+        apply_pending_row(applied[0], sx, g)
+        p3, q3 = np.empty(width), np.empty(n_actions)
+        p4, q4 = np.empty(width), np.empty(n_actions)
+        forward_row(*immediate, x3, p3, q3)
+        forward_pending_row(*deferred, x3, p4, q4, sx, g, True)
+        assert np.array_equal(p3, p4) and np.array_equal(q3, q4)
+        for a, b, c in zip(immediate, deferred, applied, strict=True):
+            assert np.array_equal(a, b) and np.array_equal(a, c)
+
+
+@pytest.mark.parametrize(
+    "cfg",
+    [
+        EnvConfig(name="mountaincar", id="MountainCar-v0", normalize=True, rbf_centres=6),
+        EnvConfig(name="mountaincar", id="MountainCar-v0", rbf_centres=5, rbf_width=0.5),
+        EnvConfig(
+            name="acrobot", id="Acrobot-v1", normalize=True, normalize_scale=[1, 1, 1, 1, 2, 2]
+        ),
+    ],
+    ids=["scaled-features", "features", "scaled"],
+)
+def test_compiled_observation_maps_equal_the_wrappers(cfg: EnvConfig) -> None:
+    """The twin's compiled scaling and radial features equal the members' own wrappers, bit
+    for bit, on observations spread over the whole box."""
+    venv = make_vector_env([make_env(cfg) for _ in range(2)])
+    if not isinstance(venv, ClassicControlTwin):
+        pytest.skip("this machine steps Acrobot through its own environments")
+    space = venv.base.observation_space
+    obs = np.random.default_rng(1).uniform(space.low, space.high, (5000, space.shape[0]))
+    obs = obs.astype(space.dtype)
+    expected = obs if venv.scaling is None else venv.scaling.observation(obs)
+    if venv.features is not None:
+        expected = venv.features.features(expected)
+    got = venv._observation_maps(obs)
+    assert got.dtype == expected.dtype and np.array_equal(got, expected)
+
+
+def test_profile_shares_add_up() -> None:
+    prof = profile_population(profile_config("cartpole", "hinf", 32), k=3, steps=200, warmup=20)
+    assert prof.member_steps == 600
+    assert set(prof.shares()) == set(PARTS)
+    assert sum(prof.shares().values()) == pytest.approx(1.0)
+    assert all(prof.seconds[p] > 0 for p in ("environment", "network", "loop (Python)"))
