@@ -104,6 +104,9 @@ class DDQNPopulation:
         self.actions = np.empty(k, dtype=np.int64)
         self.flags = np.zeros(k, dtype=np.int8)
         self.loss_seen = np.zeros(k, dtype=np.bool_)
+        self.cached = np.zeros(k, dtype=np.bool_)
+        """``x, p, q`` hold the pass at the last ``s'`` with the current parameters (the member
+        did not learn on its last step): the act at the same observation takes it as it is."""
         self.controller = _NoController()
 
     def __len__(self) -> int:
@@ -123,7 +126,8 @@ class DDQNPopulation:
             self.plan[k] = -1 if a is None else a
         n = self.net
         self.obs[:] = obs
-        _act_kernel(n.w1t, n.b1, n.w2, n.b2, obs, self.x, self.p, self.q, self.plan, self.actions)
+        _act_kernel(n.w1t, n.b1, n.w2, n.b2, obs, self.x, self.p, self.q, self.cached, self.plan,
+                    self.actions)  # fmt: skip
         return self.actions
 
     def update(
@@ -145,7 +149,7 @@ class DDQNPopulation:
             n.w1t, n.b1, n.w2, n.b2, self.x, self.p, self.q, *self.scratch, actions,
             step.reward, step.obs, step.terminated, self.obs, r.obs, r.next_obs, r.actions,
             r.rewards, r.terminated, r.size, r.pos, self.steps, self.schedule, self.learn,
-            self.last_loss, ep, t, ret, rows,
+            self.last_loss, self.cached, ep, t, ret, rows,
         )  # fmt: skip
         learning = np.flatnonzero(self.learn)
         for k in learning:  # ReplayBuffer.sample's draw
@@ -176,6 +180,7 @@ class DDQNPopulation:
         self.obs, self.x, self.p, self.q = self.obs[keep], self.x[keep], self.p[keep], self.q[keep]
         self.idx, self.plan, self.actions = self.idx[keep], self.plan[keep], self.actions[keep]
         self.flags, self.loss_seen = self.flags[keep], self.loss_seen[keep]
+        self.cached = self.cached[keep]
 
     def network(self, i: int) -> QNetwork:
         """Member ``i``'s online network as a :class:`QNetwork`."""
@@ -206,6 +211,7 @@ class DDQNPopulation:
             stack.w2[i] = s["out.weight"].numpy()
             stack.b2[i] = s["out.bias"].numpy()
         self.explorers[i].epsilon = state["epsilon"]
+        self.cached[i] = False
         self.steps[i] = state["steps"]
         self.last_loss[i] = state.get("last_loss", math.nan)
         self.replay.load_state_dict(i, state["buffer"], self.rngs[i])
@@ -245,24 +251,30 @@ class DDQNPopulation:
 
 
 @njit(cache=True)
-def _act_kernel(w1t, b1, w2, b2, obs, x, p, q, plan, actions):
-    """Per member: the forward pass at ``obs`` (kept in ``x, p, q`` for the update), then the
-    planned random action or ``argmax Q(obs, ·)``."""
+def _act_kernel(w1t, b1, w2, b2, obs, x, p, q, cached, plan, actions):
+    """Per member: the forward pass at ``obs`` (kept in ``x, p, q`` for the update; the
+    cached one if it is at ``obs`` with the current parameters), then the planned random
+    action or ``argmax Q(obs, ·)``."""
     for k in range(obs.shape[0]):
+        same = cached[k]
         for i in range(obs.shape[1]):
-            x[k, i] = obs[k, i]
-        forward_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], q[k])
+            same = same and x[k, i] == obs[k, i]
+        if not same:
+            for i in range(obs.shape[1]):
+                x[k, i] = obs[k, i]
+            forward_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], q[k])
         actions[k] = plan[k] if plan[k] >= 0 else np.argmax(q[k])
 
 
 @njit(cache=True)
 def _record_kernel(w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, theta, actions, reward, next_obs,
                    terminated, obs, buf_obs, buf_next, buf_actions, buf_rewards,
-                   buf_terminated, size, pos, steps, schedule, learn, last_loss, ep, t, ret,
-                   rows):  # fmt: skip
+                   buf_terminated, size, pos, steps, schedule, learn, last_loss, cached, ep, t,
+                   ret, rows):  # fmt: skip
     """Per member, in the order of :meth:`cdqn.agents.DDQNAgent.update`: the pass at s',
     Q1, Q2, Θ1, Θ2 and the signal row (with the last loss), the transition into the buffer,
-    the step count and whether the member learns on this step."""
+    the step count and whether the member learns on this step; the pass at s' is kept as
+    the next act's if the member does not learn."""
     learning_starts, train_freq = schedule[0], schedule[1]
     for k in range(actions.shape[0]):
         for i in range(x2.shape[0]):
@@ -288,6 +300,9 @@ def _record_kernel(w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, theta, actions, rew
         size[k] = min(size[k] + 1, buf_obs.shape[1])
         steps[k] += 1
         learn[k] = steps[k] >= learning_starts and steps[k] % train_freq == 0
+        cached[k] = not learn[k]
+        if cached[k]:
+            x[k, :], p[k, :], q[k, :] = x2, p2, q2s
 
 
 @njit(cache=True)
