@@ -20,6 +20,14 @@ that other load on the machine affects all of them alike, in CPU seconds of this
 metrics to the store cost the same per episode in every mode; they are timed apart (wall
 clock), printed below the table and included in the estimate.
 
+Beside each agent's microseconds per step (single run) or per member-step (population) it
+prints its **limit**: the multiply-adds of one environment step of that agent, counted from
+the shapes of its matrix products (:func:`agent_products`), at one thread's measured peak
+(:func:`peak_macs_per_s`, a 512² torch matmul in the configured dtype, best of 20 in CPU
+seconds of the thread), and the ratio.  Below the table: the same products as torch matmuls
+of their shapes (:func:`torch_seconds`), far slower than the limit for such thin products.
+``--dtype float32`` measures everything with ``network.dtype=float32``.
+
 The population section trains ``K`` seeds as one batch (:mod:`cdqn.training.population`) for
 ``--steps`` population steps (``K × steps`` member-steps) and reports member-steps per
 second against the single run's steps per second of the same controller (the throughput of
@@ -38,7 +46,9 @@ and closing a run and of writing metrics and signals, and schedules the sweep's 
 (``--episode-lengths``); the upper bound uses every episode at its cap.
 
 ``--json`` prints ``{"floor": {"steps_per_s": …}, "controllers": {"<name>": {"steps_per_s":
-…, "ratio_to_floor": …}}, "population": {"k": 10, "speedup": …, …}, "estimate": {…}}``.
+…, "ratio_to_floor": …, "us_per_step": …, "limit_us": …, "ratio_to_limit": …}}, "limits":
+{"<name>": {"macs_per_step": …, "peak_macs_per_s": …, "limit_us": …, "torch_us": …}},
+"population": {"k": 10, "speedup": …, "by_controller": {…}}, "estimate": {…}}``.
 """
 
 from __future__ import annotations
@@ -582,7 +592,9 @@ def _parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--controllers", default=",".join(CONTROLLERS))
     parser.add_argument("--width", type=int, default=2500, help="hidden units (paper: 2500)")
-    parser.add_argument("--dtype", default="float64", help="network.dtype: float64 or float32")
+    parser.add_argument(
+        "--dtype", choices=("float64", "float32"), default="float64", help="network.dtype"
+    )
     parser.add_argument("--steps", type=int, default=5000, help="timed steps per measurement")
     parser.add_argument(
         "--warmup", type=int, default=1200, help="untimed steps first (> DDQN's learning_starts)"
