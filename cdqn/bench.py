@@ -20,6 +20,14 @@ that other load on the machine affects all of them alike, in CPU seconds of this
 metrics to the store cost the same per episode in every mode; they are timed apart (wall
 clock), printed below the table and included in the estimate.
 
+Beside each agent's microseconds per step (single run) or per member-step (population) it
+prints its **limit**: the multiply-adds of one environment step of that agent, counted from
+the shapes of its matrix products (:func:`agent_products`), at one thread's measured peak
+(:func:`peak_macs_per_s`, a 512² torch matmul in the configured dtype, best of 20 in CPU
+seconds of the thread), and the ratio.  Below the table: the same products as torch matmuls
+of their shapes (:func:`torch_seconds`), far slower than the limit for such thin products.
+``--dtype float32`` measures everything with ``network.dtype=float32``.
+
 The population section trains ``K`` seeds as one batch (:mod:`cdqn.training.population`) for
 ``--steps`` population steps (``K × steps`` member-steps) and reports member-steps per
 second against the single run's steps per second of the same controller (the throughput of
@@ -38,7 +46,9 @@ and closing a run and of writing metrics and signals, and schedules the sweep's 
 (``--episode-lengths``); the upper bound uses every episode at its cap.
 
 ``--json`` prints ``{"floor": {"steps_per_s": …}, "controllers": {"<name>": {"steps_per_s":
-…, "ratio_to_floor": …}}, "population": {"k": 10, "speedup": …, …}, "estimate": {…}}``.
+…, "ratio_to_floor": …, "us_per_step": …, "limit_us": …, "ratio_to_limit": …}}, "limits":
+{"<name>": {"macs_per_step": …, "peak_macs_per_s": …, "limit_us": …, "torch_us": …}},
+"population": {"k": 10, "speedup": …, "by_controller": {…}}, "estimate": {…}}``.
 """
 
 from __future__ import annotations
@@ -123,6 +133,101 @@ class Throughput:
     @property
     def steps_per_s(self) -> float:
         return self.steps / self.seconds if self.seconds > 0 else float("nan")
+
+
+@dataclass(frozen=True)
+class Product:
+    """A matrix product ``(rows × inner) @ (inner × cols)`` an agent computes ``per_step``
+    times per environment step."""
+
+    rows: int
+    inner: int
+    cols: int
+    per_step: float
+
+    @property
+    def macs(self) -> float:
+        return self.rows * self.inner * self.cols * self.per_step
+
+
+def agent_products(conf: Config, n_obs: int, n_actions: int) -> list[Product]:
+    """The arithmetic of one environment step of ``conf``'s agent on the two-layer network
+    (width ``W``, ``n`` inputs, ``m`` actions), as matrix products.
+
+    Every agent: the pass at ``s'`` (``(1×n)(n×W)``, ``(1×W)(W×m)``) and the NTK's four sums
+    over hidden units (Θ1, Θ2).  Double DQN also the pass at ``s`` (its act), and every
+    ``train_freq`` steps a minibatch step (:func:`cdqn.ddqn_kernels.minibatch_macs`): three
+    passes over ``B`` samples, then ``∂L/∂W_2``, ``∂L/∂h`` and ``∂L/∂W_1``.  A controlled
+    agent's SGD step: ``W_1 += s g x^⊤``, ``b_1``, ``W_2[a]`` and its pass at ``s'`` with
+    the new parameters from the old one."""
+    w, n, m = conf.network.width, n_obs, n_actions
+    step = [Product(1, n, w, 1), Product(1, w, m, 1), Product(1, w, 1, 4)]
+    if conf.controller.name != "ddqn":
+        return [*step, Product(n, 1, w, 1), Product(1, 1, w, 3), Product(1, w, m, 1)]
+    b, every = conf.controller.batch_size, 1 / conf.controller.train_freq
+    return [
+        *step,
+        Product(1, n, w, 1),  # the act's pass at s
+        Product(1, w, m, 1),
+        Product(b, n, w, 3 * every),  # Q(s, ·), Q(s', ·), Q̄(s', ·)
+        Product(b, w, m, 3 * every),
+        Product(m, b, w, every),  # ∂L/∂W_2
+        Product(b, m, w, every),  # ∂L/∂h
+        Product(n, b, w, every),  # ∂L/∂W_1
+    ]
+
+
+def _best_seconds(fn: Any, repeats: int) -> float:
+    """The fastest of ``repeats`` calls, in CPU seconds of this thread (other load on a
+    shared machine takes the core away without counting)."""
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.thread_time()
+        fn()
+        best = min(best, time.thread_time() - t0)
+    return best
+
+
+def peak_macs_per_s(dtype: str, size: int = 512, repeats: int = 20) -> float:
+    """Multiply-adds per second of one thread at its peak: a ``size``² matrix product in
+    ``dtype`` through torch (MKL), best of ``repeats``."""
+    a = torch.randn(size, size, dtype=getattr(torch, dtype))
+    return size**3 / _best_seconds(lambda: a @ a, repeats)
+
+
+def torch_seconds(products: list[Product], dtype: str, repeats: int = 50) -> float:
+    """Seconds per environment step of the same products as torch matrix products of their
+    shapes (one call each), best of ``repeats``."""
+    t = getattr(torch, dtype)
+    pairs = [(torch.randn(p.rows, p.inner, dtype=t), torch.randn(p.inner, p.cols, dtype=t))
+             for p in products]  # fmt: skip
+    return sum(
+        p.per_step * _best_seconds(lambda a=a, b=b: a @ b, repeats)
+        for p, (a, b) in zip(products, pairs, strict=True)
+    )
+
+
+def measure_limits(cfgs: dict[str, DictConfig]) -> dict[str, dict[str, float]]:
+    """Per controller: the multiply-adds of an environment step, the **limit** (those at one
+    thread's measured peak, µs) and the same products through torch (µs)."""
+    out: dict[str, dict[str, float]] = {}
+    peak: dict[str, float] = {}
+    for c, cfg in cfgs.items():
+        conf = _conf(cfg)
+        env = make_env(conf.env)
+        products = agent_products(conf, *env_sizes(env))
+        env.close()
+        dtype = conf.network.dtype
+        if dtype not in peak:
+            peak[dtype] = peak_macs_per_s(dtype)
+        macs = sum(p.macs for p in products)
+        out[c] = {
+            "macs_per_step": macs,
+            "peak_macs_per_s": peak[dtype],
+            "limit_us": 1e6 * macs / peak[dtype],
+            "torch_us": 1e6 * torch_seconds(products, dtype),
+        }
+    return out
 
 
 def compose_config(overrides: list[str]) -> DictConfig:
@@ -477,7 +582,7 @@ def _overrides(env: str, controller: str, width: int, uri: str) -> list[str]:
     ]
 
 
-def main(argv: list[str] | None = None) -> dict[str, Any]:
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m cdqn.bench", description=__doc__.split("\n")[0]
     )
@@ -486,6 +591,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     )
     parser.add_argument("--controllers", default=",".join(CONTROLLERS))
     parser.add_argument("--width", type=int, default=2500, help="hidden units (paper: 2500)")
+    parser.add_argument(
+        "--dtype", choices=("float64", "float32"), default="float64", help="network.dtype"
+    )
     parser.add_argument("--steps", type=int, default=5000, help="timed steps per measurement")
     parser.add_argument(
         "--warmup", type=int, default=1200, help="untimed steps first (> DDQN's learning_starts)"
@@ -507,7 +615,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "--clock", choices=sorted(CLOCKS), default="cpu", help="cpu or wall seconds"
     )
     parser.add_argument("--json", action="store_true", help="print JSON instead of tables")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    args = _parser().parse_args(argv)
     global clock
     clock = CLOCKS[args.clock]
     logging.basicConfig(level=logging.ERROR)
@@ -515,66 +627,18 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     torch.set_num_threads(1)
     controllers = [] if args.only_estimate else [c for c in args.controllers.split(",") if c]
     lengths = {k: float(v) for k, v in (kv.split("=") for kv in args.episode_lengths.split(","))}
-
     with tempfile.TemporaryDirectory() as tmp:
         uri = f"sqlite:///{Path(tmp) / 'bench.db'}"
-        floor: list[float] = []
-        single: dict[str, list[float]] = {c: [] for c in controllers}
-        pop: dict[str, list[float]] = {c: [] for c in controllers}
-        cfgs = {c: compose_config(_overrides(args.env, c, args.width, uri)) for c in controllers}
+        extra = [f"network.dtype={args.dtype}"]
+        cfgs = {
+            c: compose_config(_overrides(args.env, c, args.width, uri) + extra) for c in controllers
+        }
         base = (
             cfgs[controllers[0]]
             if controllers
-            else compose_config(_overrides(args.env, "none", args.width, uri))
+            else compose_config(_overrides(args.env, "none", args.width, uri) + extra)
         )
-        k = args.population
-        metric: list[float] = []  # seconds of MLflow metric writes per episode
-
-        def keep(t: Throughput) -> float:
-            if t.episodes:
-                metric.append(t.metric_write_s / t.episodes)
-            return t.steps_per_s
-
-        for _ in range(0 if args.only_estimate else args.repeats):
-            floor.append(measure_floor(base, args.steps, args.warmup).steps_per_s)
-            for c in controllers:
-                single[c].append(keep(measure_single(cfgs[c], uri, args.steps, args.warmup)))
-                if k > 1 and c in pop:
-                    p = measure_population(
-                        cfgs[c], uri, k, args.steps, _pop_warmup(c, args.warmup, k)
-                    )
-                    pop[c].append(keep(p.member_steps))
-        floor_sps = _median(floor)
-        result: dict[str, Any] = {
-            "env": str(base.env.name),
-            "env_id": str(base.env.id),
-            "width": args.width,
-            "clock": args.clock,
-            "floor": {"steps_per_s": floor_sps},
-            "controllers": {
-                c: {
-                    "steps_per_s": _median(v),
-                    "ratio_to_floor": floor_sps / _median(v),
-                }
-                for c, v in single.items()
-            },
-            "metric_write_s_per_episode": _median(metric),
-        }
-        if k > 1 and pop:
-            by = {
-                c: {
-                    "steps_per_s": _median(v),
-                    "speedup": _median(v) / _median(single[c]),
-                }
-                for c, v in pop.items()
-            }
-            main_ctrl = "hinf" if "hinf" in by else next(iter(by))
-            result["population"] = {
-                "k": k,
-                "controller": main_ctrl,
-                "speedup": by[main_ctrl]["speedup"],
-                "by_controller": by,
-            }
+        result = _measure_table(args, cfgs, base, uri)
         result["signal_series"] = signal_series_cost(uri)
         if not args.no_estimate:
             result["estimate"] = estimate_paper_sweep(
@@ -583,7 +647,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 args.steps,
                 args.warmup,
                 args.workers,
-                max(k, 1),
+                max(args.population, 1),
                 result["metric_write_s_per_episode"],
                 args.episodes,
                 lengths,
@@ -595,22 +659,105 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     return result
 
 
+def _measure_table(
+    args: argparse.Namespace, cfgs: dict[str, DictConfig], base: DictConfig, uri: str
+) -> dict[str, Any]:
+    """The floor, each controller's single run and population, interleaved over
+    ``args.repeats`` rounds (medians), and each controller's limit."""
+    controllers, k = list(cfgs), args.population
+    floor: list[float] = []
+    single: dict[str, list[float]] = {c: [] for c in controllers}
+    pop: dict[str, list[float]] = {c: [] for c in controllers}
+    metric: list[float] = []  # seconds of MLflow metric writes per episode
+
+    def keep(t: Throughput) -> float:
+        if t.episodes:
+            metric.append(t.metric_write_s / t.episodes)
+        return t.steps_per_s
+
+    for _ in range(0 if args.only_estimate else args.repeats):
+        floor.append(measure_floor(base, args.steps, args.warmup).steps_per_s)
+        for c in controllers:
+            single[c].append(keep(measure_single(cfgs[c], uri, args.steps, args.warmup)))
+            if k > 1:
+                p = measure_population(cfgs[c], uri, k, args.steps, _pop_warmup(c, args.warmup, k))
+                pop[c].append(keep(p.member_steps))
+    limits = measure_limits(cfgs)
+    floor_sps = _median(floor)
+    result: dict[str, Any] = {
+        "env": str(base.env.name),
+        "env_id": str(base.env.id),
+        "width": args.width,
+        "dtype": args.dtype,
+        "clock": args.clock,
+        "floor": {"steps_per_s": floor_sps},
+        "controllers": {
+            c: {"steps_per_s": _median(v), "ratio_to_floor": floor_sps / _median(v)}
+            | _against_limit(_median(v), limits[c])
+            for c, v in single.items()
+        },
+        "limits": limits,
+        "metric_write_s_per_episode": _median(metric),
+    }
+    if k > 1 and pop:
+        by = {
+            c: {"steps_per_s": _median(v), "speedup": _median(v) / _median(single[c])}
+            | _against_limit(_median(v), limits[c])
+            for c, v in pop.items()
+        }
+        main_ctrl = "hinf" if "hinf" in by else next(iter(by))
+        result["population"] = {
+            "k": k,
+            "controller": main_ctrl,
+            "speedup": by[main_ctrl]["speedup"],
+            "by_controller": by,
+        }
+    return result
+
+
+def _against_limit(steps_per_s: float, limit: dict[str, float]) -> dict[str, float]:
+    """Microseconds per (member-)step, the limit's and their ratio."""
+    us = 1e6 / steps_per_s
+    return {
+        "us_per_step": us,
+        "limit_us": limit["limit_us"],
+        "ratio_to_limit": us / limit["limit_us"],
+    }
+
+
+def _limit_lines(r: dict[str, Any]) -> list[str]:
+    """How the limit column was measured, and the same products through torch."""
+    limits = r["limits"]
+    peak = next(iter(limits.values()))["peak_macs_per_s"]
+    return [
+        f"(limit: the step's multiply-adds at one thread's measured peak, "
+        f"{peak / 1e9:.1f} G/s in {r['dtype']}; the same products as torch matmuls of their "
+        "shapes: " + ", ".join(f"{c} {v['torch_us']:.1f} µs" for c, v in limits.items()) + ")"
+    ]
+
+
 def format_report(r: dict[str, Any]) -> str:
     lines = [
-        f"cdqn.bench: {r['env']}, width {r['width']}, one core, logging on ({r['clock']} seconds)",
+        f"cdqn.bench: {r['env']}, width {r['width']}, {r['dtype']}, one core, logging on "
+        f"({r['clock']} seconds)",
     ]
     if r["controllers"]:
         lines += [
             "",
-            f"{'':<26}{'steps/s':>10}{'cost / floor':>14}",
-            f"{'floor (torch autograd)':<26}{r['floor']['steps_per_s']:>10.0f}{1.0:>14.2f}",
+            f"{'':<24}{'steps/s':>9}{'cost / floor':>13}{'µs/step':>9}{'limit µs':>10}"
+            f"{'x limit':>9}",
+            f"{'floor (torch autograd)':<24}{r['floor']['steps_per_s']:>9.0f}{1.0:>13.2f}",
         ]
         for name, c in r["controllers"].items():
-            lines.append(f"{name:<26}{c['steps_per_s']:>10.0f}{c['ratio_to_floor']:>14.2f}")
+            lines.append(
+                f"{name:<24}{c['steps_per_s']:>9.0f}{c['ratio_to_floor']:>13.2f}"
+                f"{c['us_per_step']:>9.1f}{c['limit_us']:>10.1f}{c['ratio_to_limit']:>9.2f}"
+            )
         lines.append(
             f"(MLflow episode metrics: {1e3 * r['metric_write_s_per_episode']:.1f} ms per "
             "episode and run, written in batches, timed apart)"
         )
+        lines += _limit_lines(r)
     if "signal_series" in r:
         ss = r["signal_series"]
         lines.append(
@@ -620,9 +767,16 @@ def format_report(r: dict[str, Any]) -> str:
         )
     if "population" in r:
         p = r["population"]
-        lines += ["", f"population K={p['k']} (member-steps/s, speed-up over sequential runs)"]
+        lines += [
+            "",
+            f"population K={p['k']} (member-steps/s, speed-up over sequential runs)",
+            f"{'':<24}{'steps/s':>9}{'speed-up':>13}{'µs/step':>9}{'limit µs':>10}{'x limit':>9}",
+        ]
         for name, c in p["by_controller"].items():
-            lines.append(f"{name:<26}{c['steps_per_s']:>10.0f}{c['speedup']:>13.2f}x")
+            lines.append(
+                f"{name:<24}{c['steps_per_s']:>9.0f}{c['speedup']:>12.2f}x"
+                f"{c['us_per_step']:>9.1f}{c['limit_us']:>10.1f}{c['ratio_to_limit']:>9.2f}"
+            )
     if "estimate" in r:
         e = r["estimate"]
         lines += [

@@ -46,6 +46,8 @@ import torch
 from numba import njit
 from torch import nn
 
+from cdqn.ddqn_kernels import BLOCK, kernels
+
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
 
@@ -388,111 +390,49 @@ class StackedTwoLayer:
         return StackedForward(f2.x, p, q)
 
 
-_DQN_BLOCK = 256
-"""Hidden units per block of :func:`_double_dqn_kernel`: a block of both networks'
-parameters (about 30 KB) stays in L1 while the whole minibatch passes through it."""
+class Replay(NamedTuple):
+    """Stacked replay buffers as :class:`cdqn.agents.replay.StackedReplay` holds them:
+    ``obs``, ``next_obs`` ``(K, capacity, n_obs)``, ``actions``, ``rewards``, ``terminated``
+    ``(K, capacity)``."""
+
+    obs: np.ndarray
+    next_obs: np.ndarray
+    actions: np.ndarray
+    rewards: np.ndarray
+    terminated: np.ndarray
 
 
-@njit(**_JIT)
-def _block_q(w1t, b1, w2, x, j0, j1, p, q):
-    """Add hidden units ``j0 … j1−1``'s share of ``Q(x, ·)`` to ``q``; ``p`` gets their
-    pre-activations.  (Blocks are sliced, so that loops index from 0 and vectorise.)"""
-    n = j1 - j0
-    bb = b1[j0:j1]
-    for jj in range(n):
-        p[jj] = bb[jj]
-    for k in range(w1t.shape[0]):
-        xk, wk = x[k], w1t[k, j0:j1]
-        for jj in range(n):
-            p[jj] += wk[jj] * xk
-    for a in range(w2.shape[0]):
-        acc, wa = 0.0, w2[a, j0:j1]
-        for jj in range(n):
-            acc += wa[jj] * max(p[jj], 0.0)
-        q[a] += acc
+def step_settings_array(lr: float, discount: float, dtype: np.dtype) -> np.ndarray:
+    """``(α, γ, 0)`` in the network's dtype, as :func:`double_dqn_learn` takes them."""
+    return np.array([lr, discount, 0.0], dtype=dtype)
 
 
-@njit(**_JIT)
-def _block_step(w1t, b1, w2, obs, actions, delta, lr, j0, j1, p, gw1, gb1, gw2):
-    """The gradient ``Σ_i δ_i ∂Q_{a_i}(s_i)/∂θ`` of hidden units ``j0 … j1−1``'s
-    parameters, at the current parameters, then their step ``θ += lr · gradient``."""
-    n = j1 - j0
-    bb, n_obs = b1[j0:j1], w1t.shape[0]
-    gw1[:, :n], gb1[:n], gw2[:, :n] = 0.0, 0.0, 0.0
-    for i in range(actions.shape[0]):
-        ai, d = actions[i], delta[i]
-        wa, ga = w2[ai, j0:j1], gw2[ai]
-        for jj in range(n):
-            p[jj] = bb[jj]
-        for k in range(n_obs):
-            xk, wk = obs[i, 0, k], w1t[k, j0:j1]
-            for jj in range(n):
-                p[jj] += wk[jj] * xk
-        for jj in range(n):
-            h = max(p[jj], 0.0)
-            ga[jj] += d * h
-            p[jj] = d * wa[jj] if h > 0.0 else 0.0  # δ_i ∂Q/∂b_1
-            gb1[jj] += p[jj]
-        for k in range(n_obs):
-            xk, gk = obs[i, 0, k], gw1[k]
-            for jj in range(n):
-                gk[jj] += xk * p[jj]
-    for k in range(n_obs):
-        wk, gk = w1t[k, j0:j1], gw1[k]
-        for jj in range(n):
-            wk[jj] += lr * gk[jj]
-    for jj in range(n):
-        bb[jj] += lr * gb1[jj]
-    for a in range(w2.shape[0]):
-        wa, ga = w2[a, j0:j1], gw2[a]
-        for jj in range(n):
-            wa[jj] += lr * ga[jj]
+def double_dqn_learn(
+    online: StackedTwoLayer,
+    target: StackedTwoLayer,
+    replay: Replay,
+    idx: np.ndarray,
+    members: np.ndarray,
+    hyper: np.ndarray,
+    last_loss: np.ndarray,
+) -> None:
+    """One Double DQN minibatch step of each member ``k`` with ``members[k]``, on the
+    transitions ``idx[k]`` of its buffer; its loss before the step into ``last_loss[k]``.
 
+    .. math::  \\mathcal L = \\tfrac12 \\sum_i \\delta_i^2,\\qquad
+               \\delta_i = r_i + \\gamma (1-d_i)\\,\\bar Q(s'_i, \\arg\\max_a Q(s'_i, a))
+               - Q(s_i, a_i),
 
-@njit(**_JIT)
-def _double_dqn_kernel(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, obs, actions, rewards,
-                       terminated, discount, lr):  # fmt: skip
-    """:func:`double_dqn_step` on the arrays of one online and one target network, blocked
-    over hidden units: first ``Q(s_i, ·)``, ``Q(s'_i, ·)`` and the target's ``Q̄(s'_i, ·)``
-    for the whole minibatch, block by block; then the δ_i; then, block by block, the
-    gradient of the block's parameters (at the old parameters) and their step."""
-    n_obs, width = w1t.shape
-    n_act, batch = w2.shape[0], actions.shape[0]
-    q_s, q_next, q_tgt = (
-        np.empty((batch, n_act)),
-        np.empty((batch, n_act)),
-        np.empty((batch, n_act)),
-    )
-    for i in range(batch):
-        for a in range(n_act):
-            q_s[i, a], q_next[i, a], q_tgt[i, a] = b2[a], b2[a], tb2[a]
-    p = np.empty(_DQN_BLOCK)
-    for j0 in range(0, width, _DQN_BLOCK):
-        j1 = min(j0 + _DQN_BLOCK, width)
-        for i in range(batch):
-            _block_q(w1t, b1, w2, obs[i, 0], j0, j1, p, q_s[i])  # online at s_i
-            _block_q(w1t, b1, w2, obs[i, 1], j0, j1, p, q_next[i])  # online at s'_i
-            _block_q(tw1t, tb1, tw2, obs[i, 1], j0, j1, p, q_tgt[i])  # target at s'_i
-    delta = np.empty(batch)
-    loss = 0.0
-    gb2 = np.zeros(n_act)
-    for i in range(batch):
-        best = 0  # Double DQN: the online network's action at s'_i (first maximum)
-        for a in range(1, n_act):
-            if q_next[i, a] > q_next[i, best]:
-                best = a
-        y = rewards[i] + discount * (1.0 - terminated[i]) * q_tgt[i, best]
-        delta[i] = y - q_s[i, actions[i]]
-        loss += 0.5 * delta[i] * delta[i]
-        gb2[actions[i]] += delta[i]
-    gw1, gb1 = np.empty((n_obs, _DQN_BLOCK)), np.empty(_DQN_BLOCK)
-    gw2 = np.empty((n_act, _DQN_BLOCK))
-    for j0 in range(0, width, _DQN_BLOCK):
-        j1 = min(j0 + _DQN_BLOCK, width)
-        _block_step(w1t, b1, w2, obs, actions, delta, lr, j0, j1, p, gw1, gb1, gw2)
-    for a in range(n_act):
-        b2[a] += lr * gb2[a]
-    return loss
+    targets held constant; ``−∂L/∂θ = Σ_i δ_i ∂Q_{a_i}(s_i)/∂θ`` with the per-sample
+    gradients of the module docstring, all at the current parameters, then
+    ``θ ← θ + α·(−∂L/∂θ)`` (torch's SGD step on L), written out by hand in
+    :mod:`cdqn.ddqn_kernels`.  ``hyper``: :func:`step_settings_array`.
+    """
+    n_actions, n_obs = online.w2.shape[1], online.w1t.shape[1]
+    kernels(n_obs, n_actions).learn(
+        online.w1t, online.b1, online.w2, online.b2, target.w1t, target.b1, target.w2,
+        target.b2, *replay, idx, members, hyper, BLOCK, last_loss,
+    )  # fmt: skip
 
 
 def double_dqn_step(
@@ -506,28 +446,21 @@ def double_dqn_step(
     discount: float,
     lr: float,
 ) -> float:
-    """One SGD step of Double DQN on a minibatch, gradients written out by hand; returns
-    the loss before the step.
-
-    .. math::  \\mathcal L = \\tfrac12 \\sum_i \\delta_i^2,\\qquad
-               \\delta_i = r_i + \\gamma (1-d_i)\\,\\bar Q(s'_i, \\arg\\max_a Q(s'_i, a))
-               - Q(s_i, a_i),
-
-    targets held constant; ``−∂L/∂θ = Σ_i δ_i ∂Q_{a_i}(s_i)/∂θ`` with the per-sample
-    gradients of the module docstring, all at the current parameters, then
-    ``θ ← θ + lr·(−∂L/∂θ)`` (torch's SGD step on L).  One compiled pass per sample, no
-    ``(batch, width)`` temporaries.
-    """
-    dt = online.dtype
-    pairs = np.stack([obs, next_obs], axis=1).astype(dt, copy=False)
-    return float(
-        _double_dqn_kernel(
-            online.stack.w1t[0], online.b1, online.w2, online.b2,
-            target.stack.w1t[0], target.b1, target.w2, target.b2,
-            np.ascontiguousarray(pairs), _int(actions), rewards.astype(dt, copy=False),
-            terminated.astype(dt, copy=False), float(discount), float(lr),
-        )
+    """One SGD step of Double DQN on the minibatch given (:func:`double_dqn_learn`);
+    returns the loss before the step."""
+    replay = Replay(
+        np.asarray(obs, dtype=np.float64)[None],
+        np.asarray(next_obs, dtype=np.float64)[None],
+        _int(actions)[None],
+        np.asarray(rewards, dtype=np.float64)[None],
+        np.asarray(terminated, dtype=np.float64)[None],
+    )
+    loss = np.empty(1)
+    double_dqn_learn(
+        online.stack, target.stack, replay, np.arange(len(actions))[None],
+        np.ones(1, dtype=np.bool_), step_settings_array(lr, discount, online.dtype), loss,
     )  # fmt: skip
+    return float(loss[0])
 
 
 def _int(a: np.ndarray) -> np.ndarray:

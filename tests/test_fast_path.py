@@ -14,8 +14,6 @@ import pytest
 import torch
 
 from cdqn import bench
-from cdqn.agents.ddqn import DDQNAgent
-from cdqn.config import ControllerConfig, TrainConfig
 from cdqn.control.h2 import LQRError, h2_gains, h2_gains_batch, h2_gains_reference
 from cdqn.control.runtime import ScheduledLQR, StateSpace
 from cdqn.network import (
@@ -173,29 +171,6 @@ def test_h2_without_integrator_weight_has_no_stabilising_solution() -> None:
     for solve in (h2_gains, h2_gains_reference):
         with pytest.raises(LQRError):
             solve(220.0, 222.0, 1.0, np.array([1.0, 3e4, 0.0]), 2e4)
-
-
-def test_ddqn_hand_written_minibatch_step_equals_autograd() -> None:
-    """Double DQN with the fast path and with torch autograd take the same steps."""
-    (base,) = _nets(1, width=120)
-    cfg = ControllerConfig(
-        name="ddqn", batch_size=8, buffer_size=500, learning_starts=10, target_update=15
-    )
-    agents = []
-    for fast in (True, False):
-        train = TrainConfig(lr=1e-3, fast_path=fast, eps_start=0.0, eps_end=0.0)
-        agents.append(DDQNAgent(copy.deepcopy(base), cfg, train, np.random.default_rng(5)))
-    gen = np.random.default_rng(2)
-    obs = gen.normal(size=4)
-    for t in range(60):
-        nxt = obs + 0.1 * gen.normal(size=4)
-        done = t % 17 == 16
-        recs = [agent.update(obs, t % 2, 1.0, nxt, done) for agent in agents]
-        assert recs[0].loss == pytest.approx(recs[1].loss, rel=1e-9, nan_ok=True)
-        obs = gen.normal(size=4) if done else nxt
-    assert agents[0].steps >= 50  # many minibatch steps and target copies happened
-    for p_fast, p_auto in zip(agents[0].net.parameters(), agents[1].net.parameters(), strict=True):
-        torch.testing.assert_close(p_fast, p_auto, rtol=1e-10, atol=1e-12)
 
 
 def test_benchmark_reports_the_documented_fields(capsys: pytest.CaptureFixture[str]) -> None:

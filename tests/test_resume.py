@@ -60,7 +60,11 @@ def store(tmp_path_factory: pytest.TempPathFactory) -> str:
     return f"sqlite:///{tmp_path_factory.mktemp('store') / 'mlflow.db'}"
 
 
-@pytest.mark.parametrize("overrides", [CONTROLLED, DDQN], ids=["hinf", "ddqn"])
+@pytest.mark.parametrize(
+    "overrides",
+    [CONTROLLED, DDQN, [*DDQN, "network.dtype=float32"]],
+    ids=["hinf", "ddqn", "ddqn-float32"],
+)
 def test_signal_checkpoint_resume_equals_uninterrupted(
     store: str, overrides: list[str], signal_at: Callable[..., None]
 ) -> None:

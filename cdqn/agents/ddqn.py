@@ -22,9 +22,15 @@ import numpy as np
 import torch
 
 from cdqn.agents.base import EpsilonGreedy, StepRecord
-from cdqn.agents.replay import Batch, ReplayBuffer
+from cdqn.agents.replay import ReplayBuffer
 from cdqn.config import ControllerConfig, TrainConfig
-from cdqn.network import FastTwoLayer, QNetwork, double_dqn_step
+from cdqn.network import (
+    FastTwoLayer,
+    QNetwork,
+    Replay,
+    double_dqn_learn,
+    step_settings_array,
+)
 
 
 def step_settings(cfg: ControllerConfig, train: TrainConfig) -> tuple[float, float]:
@@ -49,6 +55,10 @@ class DDQNAgent:
         self.buffer = ReplayBuffer(cfg.buffer_size, net.spec.n_obs, rng)
         self.optimizer = torch.optim.SGD(net.parameters(), lr=self.lr)
         self.dtype = net.hidden.weight.dtype
+        self.hyper = step_settings_array(self.lr, self.discount, self.fast.dtype)
+        b = self.buffer
+        self.replay = Replay(b.obs[None], b.next_obs[None], b.actions[None], b.rewards[None],
+                             b.terminated[None])  # fmt: skip
         self.steps = 0
         self.last_loss = float("nan")
 
@@ -90,9 +100,9 @@ class DDQNAgent:
         return record
 
     def _learn(self) -> float:
-        b = self.buffer.sample(self.cfg.batch_size)
         if self.use_fast_path:
-            return self._fast_learn(b)
+            return self._fast_learn()
+        b = self.buffer.sample(self.cfg.batch_size)
         obs = torch.as_tensor(b.obs, dtype=self.dtype)
         next_obs = torch.as_tensor(b.next_obs, dtype=self.dtype)
         actions = torch.as_tensor(b.actions)
@@ -110,13 +120,15 @@ class DDQNAgent:
         self.optimizer.step()
         return float(loss.detach())
 
-    def _fast_learn(self, b: Batch) -> float:
+    def _fast_learn(self) -> float:
         """:meth:`_learn` with the two-layer network's gradients written out by hand
-        (:func:`cdqn.network.double_dqn_step`)."""
-        return double_dqn_step(
-            self.fast, self.fast_target, b.obs, b.actions, b.rewards, b.next_obs,
-            b.terminated, self.discount, self.lr,
-        )  # fmt: skip
+        (:func:`cdqn.network.double_dqn_learn` on a stack of one): the minibatch drawn as
+        :meth:`ReplayBuffer.sample` draws it, gathered by the kernel."""
+        idx = self.buffer.rng.integers(self.buffer.size, size=self.cfg.batch_size)
+        loss = np.empty(1)
+        double_dqn_learn(self.fast.stack, self.fast_target.stack, self.replay, idx[None],
+                         np.ones(1, dtype=np.bool_), self.hyper, loss)  # fmt: skip
+        return float(loss[0])
 
     def state_dict(self) -> dict[str, Any]:
         return {

@@ -18,14 +18,14 @@ single agent's algorithm:
    bootstraps); every ``target_update`` steps ``Q̄ ← Q``.
 
 Steps 1–2 are one compiled loop over the members built from the row functions a single run
-uses (:func:`cdqn.network.forward_row`, :func:`cdqn.network.td_row`), step 3 one compiled
-loop that gathers each member's minibatch from its buffer and calls the single run's
-minibatch kernel on the member's slice of the stacked networks.  Between them only the
-minibatch indices are drawn, by each member's generator as the single run draws them
-(exploration and sampling share it, so neither can be drawn ahead).  So each member
-computes the numbers of the single run of its seed, bit for bit
-(``tests/test_ddqn_population.py``); what the population saves is the per-step Python of
-``K`` runs.
+uses (:func:`cdqn.network.forward_row`, :func:`cdqn.network.td_row`); step 3 draws each
+learning member's minibatch indices with the member's generator as the single run draws
+them (exploration and sampling share it, so neither can be drawn ahead), then one compiled
+call (:func:`cdqn.network.double_dqn_learn`) gathers every learning member's minibatch from
+its buffer and takes its step with the kernel a single run uses on its stack of one
+(:mod:`cdqn.ddqn_kernels`).  So each member computes the numbers of the single run of its
+seed, bit for bit (``tests/test_ddqn_population.py``); what the population saves is the
+per-step Python of ``K`` runs.
 """
 
 from __future__ import annotations
@@ -42,9 +42,11 @@ from cdqn.agents.replay import StackedReplay
 from cdqn.config import ControllerConfig, TrainConfig
 from cdqn.network import (
     QNetwork,
+    Replay,
     StackedTwoLayer,
-    _double_dqn_kernel,
+    double_dqn_learn,
     forward_row,
+    step_settings_array,
     td_row,
 )
 from cdqn.training.population_step import CHECK, DONE
@@ -78,7 +80,7 @@ class DDQNPopulation:
         self.rngs = list(rngs)
         self.explorers = [EpsilonGreedy(train, spec.n_actions, rng) for rng in self.rngs]
         self.replay = StackedReplay(k, cfg.buffer_size, spec.n_obs)
-        self.hyper = np.array(step_settings(cfg, train))
+        self.hyper = step_settings_array(*step_settings(cfg, train), dtype)
         self.schedule = np.array([cfg.learning_starts, cfg.train_freq, cfg.target_update])
         self.steps = np.zeros(k, dtype=np.int64)
         self.last_loss = np.full(k, np.nan)
@@ -97,20 +99,14 @@ class DDQNPopulation:
             np.empty(spec.width, dtype),
             np.empty(2, dtype),
         )
-        b = cfg.batch_size
-        self.idx = np.zeros((k, b), dtype=np.int64)
-        # One minibatch as the single run hands it to the kernel: (s, s') pairs, actions,
-        # rewards and terminations, in the network's dtype.
-        self.batch = (
-            np.empty((b, 2, spec.n_obs), dtype),
-            np.empty(b, dtype=np.int64),
-            np.empty(b, dtype),
-            np.empty(b, dtype),
-        )
+        self.idx = np.zeros((k, cfg.batch_size), dtype=np.int64)
         self.plan = np.empty(k, dtype=np.int64)
         self.actions = np.empty(k, dtype=np.int64)
         self.flags = np.zeros(k, dtype=np.int8)
         self.loss_seen = np.zeros(k, dtype=np.bool_)
+        self.cached = np.zeros(k, dtype=np.bool_)
+        """``x, p, q`` hold the pass at the last ``s'`` with the current parameters (the member
+        did not learn on its last step): the act at the same observation takes it as it is."""
         self.controller = _NoController()
 
     def __len__(self) -> int:
@@ -130,7 +126,8 @@ class DDQNPopulation:
             self.plan[k] = -1 if a is None else a
         n = self.net
         self.obs[:] = obs
-        _act_kernel(n.w1t, n.b1, n.w2, n.b2, obs, self.x, self.p, self.q, self.plan, self.actions)
+        _act_kernel(n.w1t, n.b1, n.w2, n.b2, obs, self.x, self.p, self.q, self.cached, self.plan,
+                    self.actions)  # fmt: skip
         return self.actions
 
     def update(
@@ -152,16 +149,20 @@ class DDQNPopulation:
             n.w1t, n.b1, n.w2, n.b2, self.x, self.p, self.q, *self.scratch, actions,
             step.reward, step.obs, step.terminated, self.obs, r.obs, r.next_obs, r.actions,
             r.rewards, r.terminated, r.size, r.pos, self.steps, self.schedule, self.learn,
-            self.last_loss, ep, t, ret, rows,
+            self.last_loss, self.cached, ep, t, ret, rows,
         )  # fmt: skip
-        for k in np.flatnonzero(self.learn):  # ReplayBuffer.sample's draw
+        learning = np.flatnonzero(self.learn)
+        for k in learning:  # ReplayBuffer.sample's draw
             self.idx[k] = self.rngs[k].integers(r.size[k], size=self.cfg.batch_size)
+        if len(learning):
+            replay = Replay(r.obs, r.next_obs, r.actions, r.rewards, r.terminated)
+            double_dqn_learn(n, self.target, replay, self.idx, self.learn, self.hyper,
+                             self.last_loss)  # fmt: skip
         tg = self.target
         return _learn_kernel(
-            n.w1t, n.b1, n.w2, n.b2, tg.w1t, tg.b1, tg.w2, tg.b2, r.obs, r.next_obs,
-            r.actions, r.rewards, r.terminated, self.idx, *self.batch, self.hyper,
-            self.steps, self.schedule, self.learn, self.last_loss, step.terminated,
-            step.truncated, rows, q_limit, self.flags, self.loss_seen,
+            n.w1t, n.b1, n.w2, n.b2, tg.w1t, tg.b1, tg.w2, tg.b2, self.steps, self.schedule,
+            self.learn, self.last_loss, step.terminated, step.truncated, rows, q_limit,
+            self.flags, self.loss_seen,
         )  # fmt: skip
 
     def select(self, keep: np.ndarray) -> None:
@@ -179,6 +180,7 @@ class DDQNPopulation:
         self.obs, self.x, self.p, self.q = self.obs[keep], self.x[keep], self.p[keep], self.q[keep]
         self.idx, self.plan, self.actions = self.idx[keep], self.plan[keep], self.actions[keep]
         self.flags, self.loss_seen = self.flags[keep], self.loss_seen[keep]
+        self.cached = self.cached[keep]
 
     def network(self, i: int) -> QNetwork:
         """Member ``i``'s online network as a :class:`QNetwork`."""
@@ -209,6 +211,7 @@ class DDQNPopulation:
             stack.w2[i] = s["out.weight"].numpy()
             stack.b2[i] = s["out.bias"].numpy()
         self.explorers[i].epsilon = state["epsilon"]
+        self.cached[i] = False
         self.steps[i] = state["steps"]
         self.last_loss[i] = state.get("last_loss", math.nan)
         self.replay.load_state_dict(i, state["buffer"], self.rngs[i])
@@ -248,24 +251,30 @@ class DDQNPopulation:
 
 
 @njit(cache=True)
-def _act_kernel(w1t, b1, w2, b2, obs, x, p, q, plan, actions):
-    """Per member: the forward pass at ``obs`` (kept in ``x, p, q`` for the update), then the
-    planned random action or ``argmax Q(obs, ·)``."""
+def _act_kernel(w1t, b1, w2, b2, obs, x, p, q, cached, plan, actions):
+    """Per member: the forward pass at ``obs`` (kept in ``x, p, q`` for the update; the
+    cached one if it is at ``obs`` with the current parameters), then the planned random
+    action or ``argmax Q(obs, ·)``."""
     for k in range(obs.shape[0]):
+        same = cached[k]
         for i in range(obs.shape[1]):
-            x[k, i] = obs[k, i]
-        forward_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], q[k])
+            same = same and x[k, i] == obs[k, i]
+        if not same:
+            for i in range(obs.shape[1]):
+                x[k, i] = obs[k, i]
+            forward_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], q[k])
         actions[k] = plan[k] if plan[k] >= 0 else np.argmax(q[k])
 
 
 @njit(cache=True)
 def _record_kernel(w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, theta, actions, reward, next_obs,
                    terminated, obs, buf_obs, buf_next, buf_actions, buf_rewards,
-                   buf_terminated, size, pos, steps, schedule, learn, last_loss, ep, t, ret,
-                   rows):  # fmt: skip
+                   buf_terminated, size, pos, steps, schedule, learn, last_loss, cached, ep, t,
+                   ret, rows):  # fmt: skip
     """Per member, in the order of :meth:`cdqn.agents.DDQNAgent.update`: the pass at s',
     Q1, Q2, Θ1, Θ2 and the signal row (with the last loss), the transition into the buffer,
-    the step count and whether the member learns on this step."""
+    the step count and whether the member learns on this step; the pass at s' is kept as
+    the next act's if the member does not learn."""
     learning_starts, train_freq = schedule[0], schedule[1]
     for k in range(actions.shape[0]):
         for i in range(x2.shape[0]):
@@ -291,33 +300,21 @@ def _record_kernel(w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, theta, actions, rew
         size[k] = min(size[k] + 1, buf_obs.shape[1])
         steps[k] += 1
         learn[k] = steps[k] >= learning_starts and steps[k] % train_freq == 0
+        cached[k] = not learn[k]
+        if cached[k]:
+            x[k, :], p[k, :], q[k, :] = x2, p2, q2s
 
 
 @njit(cache=True)
-def _learn_kernel(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, buf_obs, buf_next, buf_actions,
-                  buf_rewards, buf_terminated, idx, pairs, b_actions, b_rewards, b_terminated,
-                  hyper, steps, schedule, learn, last_loss, terminated, truncated, rows,
-                  q_limit, flags, loss_seen):  # fmt: skip
-    """Per member: the minibatch step of the learning members (their minibatch gathered as
-    :meth:`cdqn.agents.replay.ReplayBuffer.sample` and :func:`cdqn.network.double_dqn_step`
-    hand it over, then the single run's kernel), the target copy every ``target_update``
+def _learn_kernel(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, steps, schedule, learn, last_loss,
+                  terminated, truncated, rows, q_limit, flags, loss_seen):  # fmt: skip
+    """Per member, after the minibatch steps (:func:`cdqn.network.double_dqn_learn`): the
+    loss of a learning member into its signal row, the target copy every ``target_update``
     steps, and the flags of the population loop."""
-    lr, discount, target_update = hyper[0], hyper[1], schedule[2]
+    target_update = schedule[2]
     flagged = 0
     for k in range(steps.shape[0]):
         if learn[k]:
-            for i in range(idx.shape[1]):
-                j = idx[k, i]
-                for m in range(buf_obs.shape[2]):
-                    pairs[i, 0, m] = buf_obs[k, j, m]
-                    pairs[i, 1, m] = buf_next[k, j, m]
-                b_actions[i] = buf_actions[k, j]
-                b_rewards[i] = buf_rewards[k, j]
-                b_terminated[i] = buf_terminated[k, j]
-            loss = _double_dqn_kernel(w1t[k], b1[k], w2[k], b2[k], tw1t[k], tb1[k], tw2[k],
-                                      tb2[k], pairs, b_actions, b_rewards, b_terminated,
-                                      discount, lr)  # fmt: skip
-            last_loss[k] = float(loss)
             rows[k, 9] = last_loss[k]
         if steps[k] % target_update == 0:
             tw1t[k][:] = w1t[k]
