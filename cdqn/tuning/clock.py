@@ -14,12 +14,12 @@ and starts no trial when ``elapsed + T_rest > tune.time_limit``:
 * T_eval, the evaluation: the measured time per member-episode of those trials,
   τ = Σ wall time / Σ member-episodes (each trial records the episodes its members played,
   ``member_episodes``), times the member-episodes of the evaluation each of its processes
-  trains, τ · ⌈eval_seeds / processes⌉ · episodes; twice that with a ``tune.baseline``,
+  trains, plus :data:`START_ALLOWANCE` for those processes to start,
+  τ · ⌈eval_seeds / processes⌉ · episodes + T_start; twice that with a ``tune.baseline``,
   which trains the same seeds again.
 
 A population trains its members side by side in one process, so a trial of K members and
-an evaluation process of K members cost alike per member-episode.  The estimate leaves out
-the start of the evaluation's processes and the closing plots, a few seconds.
+an evaluation process of K members cost alike per member-episode.
 
 The workers of a study share one clock: the worker that opens the study's MLflow parent run
 (the first one, or the first after a restart) writes the start time into the study
@@ -43,6 +43,10 @@ STOP = "time_limit_stop"
 """Study user attribute: why the study stopped starting trials (:class:`Stop` as a dict)."""
 MEMBER_EPISODES = "member_episodes"
 """Trial user attribute: the episodes its members played in all."""
+START_ALLOWANCE = 60.0
+"""T_start, seconds: the evaluation's processes are new interpreters that import torch and
+MLflow and compile the training kernels before the first episode (measured 20–60 s on two
+cores shared with other work), then the summary's plots and comparison."""
 
 
 @dataclass(frozen=True)
@@ -117,7 +121,8 @@ def estimate(trials: list[Any], size: EvaluationSize) -> Estimate | None:
         return None
     tau = sum(seconds) / sum(episodes)
     per_process = math.ceil(size.seeds / max(1, size.processes)) if size.seeds else 0
-    evaluation = tau * per_process * size.episodes * size.runs
+    evaluation = (tau * per_process * size.episodes + START_ALLOWANCE) * size.runs
+    evaluation = evaluation if size.seeds else 0.0
     return Estimate(statistics.median(seconds), evaluation, tau)
 
 
