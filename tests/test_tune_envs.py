@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 from hydra import compose, initialize_config_dir
 from mlflow.tracking import MlflowClient
 from omegaconf import OmegaConf
@@ -28,6 +29,7 @@ def test_the_comparison_of_an_environment_without_a_solve_threshold_says_so() ->
     assert "| seeds ≥ -1.5 |" in table and "| ddqn | s | -1.50 ± 0.50 | 1 | 1/2 |" in table
 
 
+@pytest.mark.slow
 def test_a_tuple_observation_environment_without_cap_or_threshold_is_tuned_as_itself(
     tmp_path: Path,
 ) -> None:
