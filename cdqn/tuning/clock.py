@@ -10,7 +10,9 @@ and starts no trial when ``elapsed + T_rest > tune.time_limit``:
 
 * T_trial, one more trial: the median wall time (Optuna's start to completion) of the
   study's trials that trained, complete or pruned (infeasible trials train nothing and are
-  left out); none before the first such trial, so the first trial always starts;
+  left out); none before the first such trial, so each worker's first trial starts
+  whatever the limit (a limit below T_rest alone is *too small* for one trial, and the
+  study says so);
 * T_eval, the evaluation: the measured time per member-episode of those trials,
   τ = Σ wall time / Σ member-episodes (each trial records the episodes its members played,
   ``member_episodes``), times the member-episodes of the evaluation each of its processes
