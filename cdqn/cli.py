@@ -296,8 +296,11 @@ def _check_one(
     overrides: list[str], config_name: str, check: Callable[[DictConfig], None]
 ) -> list[str]:
     schema = EvaluateConfig if config_name == "evaluate" else Config
+    from cdqn.envs.adopt import command_line
+
     try:
-        check(compose(config_name, overrides=overrides))
+        with command_line(overrides):
+            check(compose(config_name, overrides=overrides))
     except ConfigError as err:
         items = [ln.strip()[2:] for ln in str(err).splitlines() if ln.strip().startswith("- ")]
         return items or [str(err)]

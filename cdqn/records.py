@@ -185,6 +185,8 @@ class Tag:
     """Role of a tuning run: ``tune`` (parent), ``trial``, ``evaluation``, ..."""
     TRIAL_STATUS: Final = "trial_status"
     """How a tuning trial ended: complete, pruned or failed."""
+    STOPPED: Final = "stopped"
+    """On a study's parent run: why it started no further trial (``tune.time_limit``)."""
 
 
 class Artifact:

@@ -21,6 +21,7 @@ from omegaconf import OmegaConf
 from cdqn.cli import EXIT_CONFIG, check_overrides
 from cdqn.config import EnvConfig
 from cdqn.envs import adopt, env_label, env_presets, env_sizes, make_env
+from cdqn.envs.adopt import command_line
 from cdqn.network import NetworkSpec, QNetwork
 from cdqn.ntk_bounds import measured_box
 from cdqn.training.run import run
@@ -134,6 +135,40 @@ REFUSED = [
 def test_refused_with_one_line(overrides: list[str], expected: str) -> None:
     errors = check_overrides(overrides)
     assert len(errors) == 1 and errors[0].startswith(expected), errors
+
+
+def test_a_cap_or_threshold_given_on_the_command_line_stays_at_the_presets_value() -> None:
+    """``env.max_episode_steps=200`` is also ``env=cartpole``'s cap: given on the command
+    line, it is the user's, not a leftover of the preset (CliffWalking is not refused,
+    FrozenLake keeps 200 steps and the threshold given)."""
+    assert check_overrides(["env.id=CliffWalking-v1", "env.max_episode_steps=200"]) == []
+    given = ["env.id=FrozenLake-v1", "env.max_episode_steps=200", "env.solve_threshold=195"]
+    with command_line(given):
+        env = adopt(compose_config(given)).conf.env
+    assert (env.max_episode_steps, env.solve_threshold) == (200, 195.0)
+    env = adopt(compose_config(given)).conf.env  # composed in code: the preset's values
+    assert (env.max_episode_steps, env.solve_threshold) == (100, 0.7)
+
+
+@pytest.mark.slow
+def test_a_hydra_job_keeps_the_cap_its_command_line_gives(tmp_path: Path) -> None:
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    args = ["env.id=FrozenLake-v1", "env.max_episode_steps=200", *SMALL, "controller=none",
+            f"tracking.uri={uri}"]  # fmt: skip
+    proc = run_cli("cdqn.train", args, tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    (run_,) = runs_of(uri)
+    assert run_.data.params["env.max_episode_steps"] == "200"
+    assert run_.data.params["env.solve_threshold"] == "0.7"  # not given: its registration's
+
+
+def test_an_id_registered_without_a_reward_threshold_has_no_solve_threshold() -> None:
+    adopted = adopt(compose_config(["env.id=CliffWalking-v1", "env.max_episode_steps=100"]))
+    assert adopted.conf.env.solve_threshold is None
+    assert adopted.change is not None
+    assert "no solve threshold (none registered; env.solve_threshold=<return> sets one)" in (
+        adopted.change
+    )
 
 
 def test_a_cap_given_or_registered_passes() -> None:

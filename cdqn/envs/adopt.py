@@ -12,8 +12,10 @@ threshold.  When ``env.id`` is not the id of the preset named ``env.name``
   its module, ``/`` → ``-``), so the run is named ``<label>-<controller>-s<seed>``, tagged
   ``env=<label>`` and grouped under it by the analysis and the tuner;
 * ``env.max_episode_steps`` and ``env.solve_threshold`` come from the id's registration
-  (``max_episode_steps``, ``reward_threshold``) unless they were set to something other than
-  the preset's values.
+  (``max_episode_steps``, ``reward_threshold``) unless the command line gives them, or
+  they were set to something other than the preset's values (a configuration composed in
+  code); an id registered without a ``reward_threshold`` has no solve threshold (null: no
+  run is judged solved) unless ``env.solve_threshold`` gives one.
 
 A preset's own id with another episode cap (``env=cartpole env.max_episode_steps=500``) is
 another task: it is labelled by the id (``CartPole-v1``, or ``CartPole-v1-cap300`` for a cap
@@ -34,8 +36,12 @@ environment registered without an episode cap when ``env.max_episode_steps`` is 
 from __future__ import annotations
 
 import copy
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 
+import yaml
 from gymnasium.envs.registration import EnvSpec
 from omegaconf import DictConfig, OmegaConf, read_write
 
@@ -43,6 +49,7 @@ from cdqn.config import Config, ConfigError, EnvConfig, validate
 from cdqn.envs.make import env_label, registration
 from cdqn.envs.presets import CONF_DIR, env_presets
 
+_COMMAND_LINE: ContextVar[tuple[str, ...] | None] = ContextVar("cdqn_overrides", default=None)
 BOX_SOURCES = ("config", "measured")
 """Where the robust designs' NTK box comes from (``controller.synthesis.ntk_bounds``)."""
 
@@ -75,11 +82,12 @@ def adopt(cfg: DictConfig) -> Adopted:
     spec = registration(str(env.id))  # imports <module>: of <module>:<Id>
     preset = env_presets().get(str(env.name))
     changed: list[str] = []
+    given = _given(out)
     with read_write(out):
         if preset is not None and preset.id != env.id:
-            changed += _take_registration(env, preset, spec)
+            changed += _take_registration(env, preset, spec, given)
         elif preset is not None and env.max_episode_steps != preset.max_episode_steps:
-            changed += _other_cap(env, preset, spec)
+            changed += _other_cap(env, preset, spec, given)
         if preset is None or preset.id != env.id:
             changed += _box_of_its_own(out)
     if env.max_episode_steps is None and spec.max_episode_steps is None:
@@ -96,23 +104,66 @@ def adopt(cfg: DictConfig) -> Adopted:
     return Adopted(out, conf, head + ", ".join(changed) if changed else None)
 
 
-def _take_registration(env: DictConfig, preset: EnvConfig, spec: EnvSpec) -> list[str]:
+@contextmanager
+def command_line(overrides: list[str]) -> Iterator[None]:
+    """Within the block, :func:`adopt` takes ``overrides`` as the command line (the check
+    before Hydra starts composes without a Hydra job)."""
+    token = _COMMAND_LINE.set(tuple(overrides))
+    try:
+        yield
+    finally:
+        _COMMAND_LINE.reset(token)
+
+
+def _given(cfg: DictConfig) -> frozenset[str]:
+    """The keys of ``env.*`` the command line gives their present value: those of
+    :func:`command_line`, else those of the running Hydra job's overrides (none for a
+    configuration composed in code)."""
+    overrides = _COMMAND_LINE.get()
+    if overrides is None:
+        from hydra.core.hydra_config import HydraConfig
+
+        overrides = tuple(HydraConfig.get().overrides.task) if HydraConfig.initialized() else ()
+    out = set()
+    for text in overrides:
+        key, eq, value = text.lstrip("+~").partition("=")
+        if eq and key.startswith("env.") and OmegaConf.select(cfg, key) == _value(value):
+            out.add(key)
+    return frozenset(out)
+
+
+def _value(text: str) -> object:
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError:
+        return text
+
+
+def _take_registration(
+    env: DictConfig, preset: EnvConfig, spec: EnvSpec, given: frozenset[str]
+) -> list[str]:
     """Name, cap and threshold of ``env.id`` (registered as ``spec``) in place of
-    ``preset``'s; what changed."""
+    ``preset``'s unless given; what changed."""
     cap, threshold = spec.max_episode_steps, spec.reward_threshold
     label = env_label(str(env.id))
     env.name = label
     changed = [f"named {label}"]
-    if env.max_episode_steps == preset.max_episode_steps:
+    if env.max_episode_steps == preset.max_episode_steps and "env.max_episode_steps" not in given:
         env.max_episode_steps = cap
         changed.append(f"episode cap {cap} (its registration)")
-    if env.solve_threshold == preset.solve_threshold:
+    if env.solve_threshold == preset.solve_threshold and "env.solve_threshold" not in given:
         env.solve_threshold = threshold
-        changed.append(f"solve threshold {threshold} (its registration)")
+        changed.append(
+            f"solve threshold {threshold} (its registration)"
+            if threshold is not None
+            else "no solve threshold (none registered; env.solve_threshold=<return> sets one)"
+        )
     return changed
 
 
-def _other_cap(env: DictConfig, preset: EnvConfig, spec: EnvSpec) -> list[str]:
+def _other_cap(
+    env: DictConfig, preset: EnvConfig, spec: EnvSpec, given: frozenset[str]
+) -> list[str]:
     """A preset's id with another episode cap is another task (CartPole-v1 at 500 steps is
     not the 200-step ``cartpole``): labelled by the id, with ``-cap<N>`` unless the cap is the
     registration's, whose solve threshold it then takes unless one was set."""
@@ -120,7 +171,8 @@ def _other_cap(env: DictConfig, preset: EnvConfig, spec: EnvSpec) -> list[str]:
     label = env_label(str(env.id)) + ("" if cap == spec.max_episode_steps else f"-cap{cap}")
     env.name = label
     changed = [f"named {label} (episode cap {cap}, not {preset.name}'s {preset.max_episode_steps})"]
-    if env.solve_threshold == preset.solve_threshold and cap == spec.max_episode_steps:
+    same = env.solve_threshold == preset.solve_threshold and "env.solve_threshold" not in given
+    if same and cap == spec.max_episode_steps:
         env.solve_threshold = spec.reward_threshold
         changed.append(f"solve threshold {spec.reward_threshold} (its registration)")
     return changed

@@ -43,7 +43,7 @@ def evaluate(study: Any, cfg: DictConfig, name: str) -> dict[str, Any]:
             "episodes": str(study.episodes), "seeds": _seeds_tag(cfg)}  # fmt: skip
     run = tracker.child(study.parent, name, tags, kind="evaluation")
     t0 = time.perf_counter()
-    members = _train_split(cfg, _processes(conf.tune.eval_processes, int(cfg.train.population)))
+    members = _train_split(cfg, eval_processes(conf.tune.eval_processes, int(cfg.train.population)))
     ids = [r.run_id for r in members]
     tracker.nest(run, ids)
     seeds = [int(cfg.seed) + i for i in range(len(members))]
@@ -62,7 +62,7 @@ def evaluate(study: Any, cfg: DictConfig, name: str) -> dict[str, Any]:
     return out
 
 
-def _processes(setting: int, seeds: int) -> int:
+def eval_processes(setting: int, seeds: int) -> int:
     """Processes of the evaluation: ``tune.eval_processes``, 0 for one per core."""
     return max(1, min(seeds, setting or os.cpu_count() or 1))
 
@@ -195,16 +195,20 @@ def _other_agents(study: Any, mine: dict[str, Any]) -> list[dict[str, Any]]:
 
 def comparison_table(rows: list[dict[str, Any]], threshold: float | None, episodes: int) -> str:
     """Markdown: one row per agent, and whether each design reaches Double DQN's final score
-    minus one standard deviation on the same seeds."""
+    minus one standard deviation on the same seeds.  An environment without a solve
+    threshold (``env.solve_threshold=null``: none registered, none given) has no solve
+    episode and no count of seeds that reach it (``n/a``)."""
+    reach = "no solve threshold" if threshold is None else f"seeds ≥ {threshold:g}"
     head = (
         f"| agent | study | final score (mean ± std, {len(rows[0]['finals'])} seeds) | "
-        f"solve episode (median) | seeds ≥ {threshold} | J (area, {episodes} episodes) |"
+        f"solve episode (median) | {reach} | J (area, {episodes} episodes) |"
     )
     lines = [head, "|---|---|---|---|---|---|"]
     for r in rows:
         solve = "n/a" if r["solve_median"] is None else f"{r['solve_median']:.0f}"
+        solved = "n/a" if threshold is None else f"{r['solved']}/{len(r['finals'])}"
         lines.append(f"| {r['agent']} | {r['study']} | {r['final_score']:.2f} ± "
-                     f"{r['final_std']:.2f} | {solve} | {r['solved']}/{len(r['finals'])} | "
+                     f"{r['final_std']:.2f} | {solve} | {solved} | "
                      f"{r['objective']:.2f} |")  # fmt: skip
     base = next((r for r in rows if r["agent"] == "ddqn"), None)
     if base is not None:

@@ -82,6 +82,8 @@ def summary_text(s: dict[str, Any]) -> str:
         f"{s.get('episodes', '?')} episodes per member in {s['wall_seconds']:.0f} s; MLflow "
         f"parent run {s['parent_run']}"
     ]
+    if "stopped" in s:
+        lines.append(f"study {s['stopped']}")
     if "best_trial" in s:
         lines.append(f"best trial {s['best_trial']}: J = {s['best_value']:.2f} (final MA100 "
                      f"{s['best_final_score']:.1f}), {json.dumps(s['best_params'])}")  # fmt: skip

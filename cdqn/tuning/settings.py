@@ -81,6 +81,9 @@ class TuneSettings:
     """With episodes null: the fewest episodes per member."""
     max_episodes: int = 2000
     """With episodes null: the most episodes per member."""
+    time_limit: float | None = 1800.0
+    """Wall time of the whole study, evaluation included, seconds (null: none): a worker
+    starts no trial that, with the evaluation, would end past it (:mod:`cdqn.tuning.clock`)."""
     eval_seeds: int = 10
     """Fresh seeds of the final evaluation of the best specification (0: none)."""
     eval_seed: int = 1000
@@ -156,6 +159,9 @@ def validate_tune(conf: TuneConfig) -> None:
                            ("worker", t.worker, 0)):  # fmt: skip
         if value < lo:
             errors.append(f"tune.{key}={value}: must be an integer >= {lo}")
+    if t.time_limit is not None and not t.time_limit >= 0:
+        errors.append(f"tune.time_limit={t.time_limit}: must be a number of seconds >= 0, or null "
+                      "for no limit")  # fmt: skip
     if t.pruner.kind not in ("median", "none"):
         errors.append(f"tune.pruner.kind={t.pruner.kind}: allowed median, none")
     trial = set(range(t.seed, t.seed + t.seeds))

@@ -10,6 +10,7 @@ synthesises and certifies it before anything trains (:mod:`cdqn.tuning.trial`)."
 from __future__ import annotations
 
 import copy
+import dataclasses
 import logging
 import time
 from pathlib import Path
@@ -25,8 +26,10 @@ from cdqn.config import (
     ConfigError,
     resolve_tracking_uri,
 )
+from cdqn.records import Tag
 from cdqn.training.interrupt import GracefulStop
-from cdqn.tuning.evaluation import evaluate, write_comparison
+from cdqn.tuning.clock import EvaluationSize, StudyClock, recorded_stop
+from cdqn.tuning.evaluation import eval_processes, evaluate, write_comparison
 from cdqn.tuning.presets import write_preset
 from cdqn.tuning.report import log_design, plot_study
 from cdqn.tuning.settings import TuneConfig, episode_budget, validate_tune
@@ -162,6 +165,9 @@ class Study:
                 load_if_exists=True,
             )
             self.parent = self.tracker.parent(study, self.conf, self.cfg)
+            size = EvaluationSize(t.eval_seeds, eval_processes(t.eval_processes, t.eval_seeds),
+                                  self.episodes, 2 if t.baseline else 1)  # fmt: skip
+            self.clock = StudyClock(study, t.time_limit, size, joined=self.tracker.joined)
             self.tracker.client.set_tag(self.parent, "episodes", str(self.episodes))
             _retry_interrupted(study)
             done = sum(tr.state in (TrialState.COMPLETE, TrialState.PRUNED)
@@ -205,6 +211,11 @@ class Study:
                                    "episodes": self.episodes}  # fmt: skip
         plot_study(self.tracker, self.parent, study)
         client = self.tracker.client
+        stop = recorded_stop(study)
+        if stop is not None:
+            summary["stopped"] = stop.text(sum(count.values()))
+            client.set_tag(self.parent, Tag.STOPPED, summary["stopped"])
+            log.warning("study %s %s", t.study, summary["stopped"])
         if count["complete"] == 0:
             self.tracker.metrics(self.parent, metrics)
             client.set_tag(self.parent, "best", "none: no trial completed")
@@ -218,7 +229,8 @@ class Study:
         self.tracker.log_params(self.parent, {f"best.{k}": v for k, v in best.params.items()})
         cfg = self.specified(best.params, t.eval_seed, max(1, t.eval_seeds))
         name = t.preset or f"tuned_{t.study}"
-        preset = write_preset(cfg, name, Path(t.preset_dir), best, t)
+        searched = dataclasses.replace(t, space=self.space)  # as this environment offered it
+        preset = write_preset(cfg, name, Path(t.preset_dir), best, searched)
         client.log_artifact(self.parent, str(preset), "preset")
         summary |= {"best_trial": best.number, "best_value": best.value,
                     "best_params": best.params, "preset": str(preset),

@@ -37,13 +37,16 @@ class Tracker:
         )
 
     def parent(self, study: Any, conf: Any, cfg: DictConfig) -> str:
-        """The study's parent run: created at the first start, reopened on a restart."""
+        """The study's parent run: created at the first start, reopened on a restart
+        (``joined``: it was open, another worker of the study opened it)."""
         from cdqn.training.tracking import flatten, git_commit
 
+        self.joined = False
         run_id = study.user_attrs.get("mlflow_parent")
         if run_id is not None:
             try:
                 if self.client.get_run(run_id).info.status == "RUNNING":
+                    self.joined = True
                     return run_id  # another worker of the study has it open
                 self.client.update_run(run_id, status="RUNNING")
                 self.client.set_tag(run_id, "resumed", time.strftime("%Y-%m-%dT%H:%M:%S"))

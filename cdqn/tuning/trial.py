@@ -13,6 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from cdqn.control.errors import DesignError
 from cdqn.records import Metric
+from cdqn.tuning.clock import MEMBER_EPISODES
 from cdqn.tuning.objective import Progress, area, padded
 from cdqn.tuning.report import log_design
 from cdqn.tuning.space import sample
@@ -25,7 +26,9 @@ WAIT_SECONDS = 2.0
 
 
 def run_trials(study_obj: Any, study: Any, lock: Any) -> list[int]:
-    """Run trials until the study holds ``tune.trials`` complete, pruned or running ones.
+    """Run trials until the study holds ``tune.trials`` complete, pruned or running ones, or
+    until one more trial and the evaluation would end past ``tune.time_limit``
+    (:meth:`cdqn.tuning.clock.StudyClock.check`).
 
     Counting them and creating the next trial (``study.optimize``'s ask) happen under
     ``lock``, so that workers never start more than ``tune.trials`` in all; the lock is
@@ -44,12 +47,14 @@ def run_trials(study_obj: Any, study: Any, lock: Any) -> list[int]:
         ran.append(trial.number)
         return Trial(study_obj, trial).run()
 
-    attempts, waiting = 0, False
+    attempts, waiting, timed_out = 0, False, False
     while attempts < t.trials:  # at most tune.trials trials per worker (failed ones too)
         lock.acquire()
         try:
             states = [tr.state for tr in study.get_trials(deepcopy=False)]
-            if sum(s in claimed for s in states) >= t.trials:
+            full = sum(s in claimed for s in states) >= t.trials
+            timed_out = timed_out or (not full and study_obj.clock.check() is not None)
+            if full or timed_out:
                 if t.worker == 0 and TrialState.RUNNING in states:
                     lock.release()
                     if not waiting:
@@ -176,6 +181,8 @@ class Trial:
 
         ids = [r.run_id for r in result.members]
         self.trial.set_user_attr("runs", ids)
+        played = sum(len(r) for r in prog.returns.values())
+        self.trial.set_user_attr(MEMBER_EPISODES, played)  # the study clock's measure
         if result.signum is not None:
             self.tracker.nest(self.child, ids)
             self._end("KILLED", "failed", "interrupted by a signal", status="interrupted")

@@ -1,0 +1,171 @@
+"""The study's wall-time budget (``tune.time_limit``): whether a worker may start another trial.
+
+The whole study — its trials, then the evaluation on fresh seeds (and ``tune.baseline``) —
+is to end within ``tune.time_limit`` seconds of its start.  Before each trial a worker
+estimates the time the study still needs,
+
+    T_rest = T_trial + T_eval,
+
+and starts no trial when ``elapsed + T_rest > tune.time_limit``:
+
+* T_trial, one more trial: the median wall time (Optuna's start to completion) of the
+  study's trials that trained, complete or pruned (infeasible trials train nothing and are
+  left out); none before the first such trial, so each worker's first trial starts
+  whatever the limit (a limit below T_rest alone is *too small* for one trial, and the
+  study says so);
+* T_eval, the evaluation: the measured time per member-episode of those trials,
+  τ = Σ wall time / Σ member-episodes (each trial records the episodes its members played,
+  ``member_episodes``), times the member-episodes of the evaluation each of its processes
+  trains, plus :data:`START_ALLOWANCE` for those processes to start,
+  τ · ⌈eval_seeds / processes⌉ · episodes + T_start; twice that with a ``tune.baseline``,
+  which trains the same seeds again.
+
+A population trains its members side by side in one process, so a trial of K members and
+an evaluation process of K members cost alike per member-episode.
+
+The workers of a study share one clock: the worker that opens the study's MLflow parent run
+(the first one, or the first after a restart) writes the start time into the study
+(``clock_start``, seconds since the epoch); a worker that joins the open parent run reads
+it.  The worker that stops records why in the study (``time_limit_stop``); worker 0 writes
+it on the parent run (tag ``stopped``) and in the printed summary."""
+
+from __future__ import annotations
+
+import logging
+import math
+import statistics
+import time
+from dataclasses import dataclass
+from typing import Any
+
+log = logging.getLogger("cdqn.tune")
+START = "clock_start"
+"""Study user attribute: the study's start, seconds since the epoch."""
+STOP = "time_limit_stop"
+"""Study user attribute: why the study stopped starting trials (:class:`Stop` as a dict)."""
+MEMBER_EPISODES = "member_episodes"
+"""Trial user attribute: the episodes its members played in all."""
+START_ALLOWANCE = 60.0
+"""T_start, seconds: the evaluation's processes are new interpreters that import torch and
+MLflow and compile the training kernels before the first episode (measured 20–60 s on two
+cores shared with other work), then the summary's plots and comparison."""
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """The time the study still needs, seconds."""
+
+    trial: float
+    """One more trial: the median wall time of the trials that trained."""
+    evaluation: float
+    """The evaluation (and baseline) on fresh seeds."""
+    per_member_episode: float
+    """τ: the trials' wall time per member-episode."""
+
+    @property
+    def total(self) -> float:
+        return self.trial + self.evaluation
+
+
+@dataclass(frozen=True)
+class Stop:
+    """Why a worker started no further trial."""
+
+    limit: float
+    """``tune.time_limit``, seconds."""
+    elapsed: float
+    """Seconds since the study's start when the worker stopped."""
+    needed: float
+    """The estimate of one more trial and the evaluation, seconds."""
+    too_small: bool
+    """The limit is smaller than one trial and the evaluation: one trial ran anyway."""
+
+    def text(self, trials: int) -> str:
+        """One line for the summary and the parent run's ``stopped`` tag."""
+        if self.too_small:
+            return (f"tune.time_limit={self.limit:g} s is too small for even one trial and "
+                    f"the evaluation (about {self.needed:.0f} s): ran {trials} trial(s) "
+                    "anyway")  # fmt: skip
+        return (f"stopped at its time limit ({self.limit:g} s) after {trials} trials: "
+                f"{self.elapsed:.0f} s elapsed, one more trial and the evaluation need about "
+                f"{self.needed:.0f} s")  # fmt: skip
+
+
+@dataclass(frozen=True)
+class EvaluationSize:
+    """What the evaluation trains, for :func:`estimate`."""
+
+    seeds: int
+    """``tune.eval_seeds`` (0: no evaluation)."""
+    processes: int
+    """Processes the seeds are split over."""
+    episodes: int
+    """Episodes per member."""
+    runs: int
+    """Evaluations: 1, or 2 with a ``tune.baseline``."""
+
+
+def estimate(trials: list[Any], size: EvaluationSize) -> Estimate | None:
+    """The time still needed (module docstring) from the study's finished trials
+    (``optuna.trial.FrozenTrial``); None before any trial trained."""
+    from optuna.trial import TrialState
+
+    seconds, episodes = [], []
+    for tr in trials:
+        played = tr.user_attrs.get(MEMBER_EPISODES)
+        if tr.state not in (TrialState.COMPLETE, TrialState.PRUNED) or not played:
+            continue
+        if tr.datetime_start is None or tr.datetime_complete is None:
+            continue
+        seconds.append((tr.datetime_complete - tr.datetime_start).total_seconds())
+        episodes.append(int(played))
+    if not seconds:
+        return None
+    tau = sum(seconds) / sum(episodes)
+    per_process = math.ceil(size.seeds / max(1, size.processes)) if size.seeds else 0
+    evaluation = (tau * per_process * size.episodes + START_ALLOWANCE) * size.runs
+    evaluation = evaluation if size.seeds else 0.0
+    return Estimate(statistics.median(seconds), evaluation, tau)
+
+
+class StudyClock:
+    """The clock of one study's invocation (module docstring); ``limit`` None: no limit."""
+
+    def __init__(self, study: Any, limit: float | None, size: EvaluationSize, joined: bool):
+        """``joined``: this worker found the parent run open (another worker of the same
+        invocation opened it) and reads the clock; otherwise, or when the recorded start is
+        older than the limit (a parent run left open by a killed process), it starts it."""
+        self.study, self.limit, self.size = study, limit, size
+        start = study.user_attrs.get(START)
+        stale = start is None or (limit is not None and time.time() - float(start) > limit)
+        if not joined or stale:
+            study.set_user_attr(START, time.time())
+            study.set_user_attr(STOP, None)
+        self.start = float(study.user_attrs[START])
+
+    def elapsed(self) -> float:
+        return time.time() - self.start
+
+    def check(self) -> Stop | None:
+        """A :class:`Stop` when one more trial and the evaluation would end past the limit
+        (recorded in the study), else None."""
+        if self.limit is None:
+            return None
+        trials = self.study.get_trials(deepcopy=False)
+        est = estimate(trials, self.size)
+        elapsed = self.elapsed()
+        if est is None or elapsed + est.total <= self.limit:
+            return None
+        stop = Stop(self.limit, elapsed, est.total, too_small=est.total > self.limit)
+        self.study.set_user_attr(STOP, stop.__dict__)
+        log.info("time limit %g s: %.0f s elapsed, one more trial (%.0f s) and the "
+                 "evaluation (%.0f s, %.3g s per member-episode) would end past it; no further "
+                 "trial", self.limit, elapsed, est.trial, est.evaluation,
+                 est.per_member_episode)  # fmt: skip
+        return stop
+
+
+def recorded_stop(study: Any) -> Stop | None:
+    """The :class:`Stop` a worker recorded in ``study`` in this invocation, if any."""
+    found = study.user_attrs.get(STOP)
+    return Stop(**found) if found else None

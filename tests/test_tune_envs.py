@@ -1,0 +1,76 @@
+"""Environments unlike the presets through the tuner: ``Tuple``/``Discrete`` observations
+(one-hot), no registered episode cap, no registered solve threshold; a real Optuna SQLite
+storage and a real MLflow store."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from mlflow.tracking import MlflowClient
+from omegaconf import OmegaConf
+
+from cdqn.envs import adopt
+from cdqn.training.run import run
+from cdqn.tuning.evaluation import comparison_table, summarise
+from tests.conftest import CONF_DIR
+from tests.test_tune import _runs, _store, _study
+
+
+def test_the_comparison_of_an_environment_without_a_solve_threshold_says_so() -> None:
+    row = {**summarise("ddqn", {1000: [-1.0] * 4, 1001: [-2.0] * 4}, 4, None), "study": "s"}
+    table = comparison_table([row], None, 4)
+    assert "None" not in table
+    assert "| solve episode (median) | no solve threshold |" in table
+    assert "| ddqn | s | -1.50 ± 0.50 | n/a | n/a | -1.50 |" in table
+    row = {**summarise("ddqn", {1000: [-1.0] * 4, 1001: [-2.0] * 4}, 4, -1.5), "study": "s"}
+    table = comparison_table([row], -1.5, 4)
+    assert "| seeds ≥ -1.5 |" in table and "| ddqn | s | -1.50 ± 0.50 | 1 | 1/2 |" in table
+
+
+@pytest.mark.slow
+def test_a_tuple_observation_environment_without_cap_or_threshold_is_tuned_as_itself(
+    tmp_path: Path,
+) -> None:
+    """Blackjack-v1 (``Tuple`` of ``Discrete``: one-hot, 45 inputs; no registered cap or
+    reward threshold) tuned for Double DQN: the study, its runs and its preset are
+    Blackjack's, with the cap given and no solve threshold; the preset records the search
+    space the observation allowed (no radial features over 45 inputs) and trains again."""
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    _store(uri, "cdqn-tune", tmp_path)
+    summary = _study([
+        "env.id=Blackjack-v1", "env.max_episode_steps=20", "controller=ddqn",
+        f"tracking.uri={uri}", f"tune.storage=sqlite:///{tmp_path / 'optuna.db'}",
+        f"tune.preset_dir={tmp_path / 'presets'}", "network.width=16", "tune.trials=1",
+        "tune.seeds=2", "tune.episodes=6", "tune.eval_seeds=2", "tune.pruner.kind=none",
+    ])  # fmt: skip
+    assert summary["study"] == "Blackjack-v1-ddqn" and summary["counts"]["complete"] == 1
+    assert "no solve threshold" in summary["comparison"]["table"]
+    (parent,) = _runs(tmp_path, kind="tune")
+    assert (parent.data.tags["env"], parent.data.tags["env_id"]) == ("Blackjack-v1", "Blackjack-v1")
+    assert parent.data.params["env.max_episode_steps"] == "20"
+    assert parent.data.params["env.solve_threshold"] == "None"
+    members = [r for r in _runs(tmp_path) if "population" in r.data.tags]
+    assert len(members) == 4  # the trial's two and the evaluation's two
+    assert {r.data.tags["env"] for r in members} == {"Blackjack-v1"}
+    assert all(r.info.run_name.startswith("Blackjack-v1-ddqn-") for r in members)
+
+    preset = Path(summary["preset"])
+    assert preset.name == "tuned_Blackjack-v1-ddqn.yaml"
+    tuned = OmegaConf.load(preset)
+    assert (tuned.env.id, tuned.env.name) == ("Blackjack-v1", "Blackjack-v1")
+    assert tuned.env.max_episode_steps == 20 and tuned.env.solve_threshold is None
+    assert "rbf" not in tuned.extra.tuned.space and "normalize" in tuned.extra.tuned.space
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        cfg = compose("config", overrides=[
+            "controller=ddqn", f"weights={preset.stem}", "network.width=16",
+            f"hydra.searchpath=[file://{tmp_path / 'presets'}]", "train.episodes=2",
+            "train.progress=false", f"tracking.uri=sqlite:///{tmp_path / 'train.db'}",
+        ])  # fmt: skip
+    adopted = adopt(cfg)
+    assert adopted.change is None  # the preset's environment is Blackjack's already
+    result = run(adopted.cfg, progress=False)
+    trained = MlflowClient(f"sqlite:///{tmp_path / 'train.db'}").get_run(result.run_id)
+    assert result.status == "FINISHED" and trained.data.tags["env"] == "Blackjack-v1"
+    assert trained.data.params["env.max_episode_steps"] == "20"

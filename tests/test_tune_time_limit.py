@@ -1,0 +1,165 @@
+"""``tune.time_limit``: a study starts no trial that, with its evaluation, would end past the
+limit (:mod:`cdqn.tuning.clock`); real Optuna storages and a real MLflow store."""
+
+from __future__ import annotations
+
+import time
+from datetime import datetime, timedelta
+from pathlib import Path
+
+import optuna
+import pytest
+from mlflow.tracking import MlflowClient
+from optuna.distributions import FloatDistribution
+from optuna.trial import FrozenTrial, TrialState
+
+from cdqn.cli import check_overrides
+from cdqn.records import Tag
+from cdqn.tuning.clock import (
+    START,
+    START_ALLOWANCE,
+    EvaluationSize,
+    StudyClock,
+    estimate,
+    recorded_stop,
+)
+from cdqn.tuning.evaluation import eval_processes
+from cdqn.tuning.report import summary_text
+from tests.helpers import run_cli
+from tests.test_tune import _overrides, _runs, _study
+
+T0 = datetime(2026, 1, 1)
+
+
+def _trial(number: int, seconds: float, played: int | None, state: TrialState) -> FrozenTrial:
+    attrs = {} if played is None else {"member_episodes": played}
+    return FrozenTrial(
+        number=number, state=state, value=1.0 if state == TrialState.COMPLETE else None,
+        datetime_start=T0, datetime_complete=T0 + timedelta(seconds=seconds),
+        params={"x": 0.5}, distributions={"x": FloatDistribution(0, 1)}, user_attrs=attrs,
+        system_attrs={}, intermediate_values={}, trial_id=number,
+    )  # fmt: skip
+
+
+def test_the_estimate_is_one_median_trial_and_the_evaluation_at_the_trials_pace() -> None:
+    trials = [
+        _trial(0, 30.0, 600, TrialState.COMPLETE),
+        _trial(1, 10.0, 150, TrialState.PRUNED),
+        _trial(2, 50.0, 1000, TrialState.COMPLETE),
+        _trial(3, 1.0, None, TrialState.PRUNED),  # infeasible: trained nothing
+        _trial(4, 99.0, 600, TrialState.FAIL),
+    ]
+    size = EvaluationSize(seeds=10, processes=2, episodes=200, runs=1)
+    est = estimate(trials, size)
+    assert est is not None
+    assert est.trial == 30.0  # median of 30, 10, 50
+    tau = 90.0 / 1750  # wall time per member-episode of the trials that trained
+    assert est.per_member_episode == pytest.approx(tau)
+    start = START_ALLOWANCE  # the evaluation's processes start
+    assert est.evaluation == pytest.approx(tau * 5 * 200 + start)  # 5 seeds per process
+    assert est.total == pytest.approx(30.0 + tau * 1000 + start)
+    with_baseline = estimate(trials, EvaluationSize(10, 2, 200, runs=2))
+    assert with_baseline is not None
+    assert with_baseline.evaluation == pytest.approx(2 * (tau * 1000 + start))
+    assert estimate(trials, EvaluationSize(0, 1, 200, 1)).evaluation == 0.0  # no evaluation
+    assert estimate(trials[3:], size) is None  # before any trial trained: no estimate
+
+
+def test_workers_share_the_clock_and_a_new_invocation_restarts_it(tmp_path: Path) -> None:
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    size = EvaluationSize(2, 1, 10, 1)
+    first = optuna.create_study(study_name="clock", storage=storage)
+    clock = StudyClock(first, 100.0, size, joined=False)
+    other = optuna.load_study(study_name="clock", storage=storage)  # a second worker
+    assert StudyClock(other, 100.0, size, joined=True).start == clock.start
+    other.set_user_attr(START, time.time() - 500.0)  # a parent left open by a killed process
+    assert StudyClock(other, 100.0, size, joined=True).start > time.time() - 5.0
+    other.set_user_attr(START, time.time() - 50.0)
+    assert StudyClock(other, None, size, joined=True).start < time.time() - 40.0
+    assert StudyClock(other, None, size, joined=False).start > time.time() - 5.0  # restarted
+
+
+def test_the_clock_stops_when_one_more_trial_and_the_evaluation_would_overrun() -> None:
+    study = optuna.create_study()
+    limit = 100.0 + START_ALLOWANCE
+    clock = StudyClock(study, limit, EvaluationSize(2, 1, 100, 1), joined=False)
+    assert clock.check() is None  # no trial yet: the first one always starts
+    study.add_trial(_trial(0, 20.0, 200, TrialState.COMPLETE))  # τ = 0.1 s: 20 s + start
+    assert clock.check() is None  # 0 + 20 + 20 + start ≤ limit
+    clock.start -= 70.0
+    stop = clock.check()
+    assert stop is not None and not stop.too_small
+    assert stop.needed == pytest.approx(40.0 + START_ALLOWANCE)
+    assert recorded_stop(study) == stop
+    assert stop.text(4).startswith(f"stopped at its time limit ({limit:g} s) after 4 trials")
+    assert StudyClock(study, None, EvaluationSize(2, 1, 100, 1), joined=False).check() is None
+    assert recorded_stop(study) is None  # a new invocation forgets the last one's stop
+
+
+@pytest.mark.parametrize(
+    ("value", "expected"),
+    [("-5", "tune.time_limit=-5.0: must be a number of seconds >= 0, or null for no limit"),
+     ("abc", "tune.time_limit=abc: Value 'abc' of type 'str' could not be converted to Float")],
+)  # fmt: skip
+def test_a_bad_limit_is_refused_with_one_line(value: str, expected: str) -> None:
+    errors = check_overrides([f"tune.time_limit={value}"], config_name="tune",
+                             check=_check_tune())  # fmt: skip
+    assert len(errors) == 1 and errors[0].startswith(expected), errors
+
+
+def _check_tune():
+    from cdqn.tune import check_tune
+
+    return check_tune
+
+
+def test_cli_refuses_a_negative_limit_with_exit_2(tmp_path: Path) -> None:
+    proc = run_cli("cdqn.tune", ["tune.time_limit=-1"], tmp_path)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert "tune.time_limit=-1.0: must be a number of seconds >= 0" in proc.stderr
+    assert not (tmp_path / "optuna.db").exists()
+
+
+def _parent(tmp: Path, run_id: str):
+    return MlflowClient(f"sqlite:///{tmp / 'mlflow.db'}").get_run(run_id)
+
+
+@pytest.mark.slow
+def test_a_limit_too_small_for_one_trial_runs_one_and_says_so(tmp_path: Path) -> None:
+    summary = _study(_overrides(tmp_path, "small", 10, ["tune.time_limit=0"]))
+    assert sum(summary["counts"].values()) == 1
+    assert summary["evaluation"]["seeds"] == [1000, 1001]
+    reason = _parent(tmp_path, summary["parent_run"]).data.tags[Tag.STOPPED]
+    assert reason.startswith("tune.time_limit=0 s is too small for even one trial")
+    assert reason.endswith("ran 1 trial(s) anyway") and reason in summary_text(summary)
+
+
+@pytest.mark.slow
+def test_a_limit_of_a_few_trials_stops_a_ten_trial_study_before_its_evaluation(
+    tmp_path: Path,
+) -> None:
+    """A study runs 3 trials without a limit; run again for 10 more with a limit that leaves
+    about 2.5 of its trials besides the evaluation, it stops early, says why on its parent
+    run and in its summary, and still evaluates its best trial on the fresh seeds."""
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    first = _study(_overrides(tmp_path, "limited", 3, ["tune.time_limit=null",
+                                                       "tune.eval_seeds=0"]))  # fmt: skip
+    assert "stopped" not in first
+    trials = optuna.load_study(study_name="limited", storage=storage).trials
+    est = estimate(trials, EvaluationSize(seeds=2, processes=eval_processes(0, 2), episodes=12,
+                                          runs=1))  # fmt: skip
+    assert est is not None
+    limit = round(est.evaluation + 2.5 * est.trial)
+    summary = _study(_overrides(tmp_path, "limited", 13, [f"tune.time_limit={limit}"]))
+    total = sum(summary["counts"].values())
+    assert 4 <= total < 13  # at least one more trial, and not all ten
+    assert summary["evaluation"]["seeds"] == [1000, 1001]
+    (evaluation,) = _runs(tmp_path, kind="evaluation")
+    assert evaluation.info.status == "FINISHED"
+    parent = _parent(tmp_path, summary["parent_run"])
+    assert parent.info.run_id == first["parent_run"]
+    assert parent.data.tags[Tag.STOPPED] == summary["stopped"]
+    assert summary["stopped"].startswith(
+        f"stopped at its time limit ({limit} s) after {total} trials"
+    )
+    assert f"study {summary['stopped']}" in summary_text(summary)
