@@ -49,10 +49,20 @@ def test_sweep_and_launcher_configs_compose(sweep: str, launcher: str) -> None:
     cfg = _compose_sweep(sweep, [f"hydra/launcher={launcher}"])
     assert cfg.hydra.launcher._target_ == LAUNCHERS[launcher]
     params = cfg.hydra.sweeper.params
-    # every environment and controller, the longest jobs (Mountain car, Double DQN) first
-    assert params.env.split(",") == ["mountaincar", "acrobot", "cartpole"]
+    # every environment (like: those with tuned presets) and controller, the longest jobs
+    # (Mountain car, Double DQN) first
+    envs = ["cartpole"] if sweep == "like" else ["mountaincar", "acrobot", "cartpole"]
+    assert params.env.split(",") == envs
     assert params.controller.split(",") == ["ddqn", "h2", "hinf", "hinf_f"]
     assert cfg.tracking.skip_finished and cfg.train.population >= 2
+
+
+@pytest.mark.parametrize("controller", ["ddqn", "h2", "hinf", "hinf_f"])
+def test_the_like_for_like_sweep_takes_each_agents_tuned_preset(controller: str) -> None:
+    cfg = _compose_sweep("like", ["env=cartpole", f"controller={controller}"], hydra=False)
+    assert cfg.weights.name == f"tuned_cartpole-{controller}"
+    assert cfg.extra.tuned.budget.episodes == 500 and cfg.extra.tuned.budget.trials == 20
+    assert cfg.train.episodes == 2000 and cfg.network.width == 2500
 
 
 def test_every_job_of_the_paper_sweep_is_a_valid_configuration() -> None:
