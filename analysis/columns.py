@@ -80,16 +80,59 @@ def column_differences(runs: pd.DataFrame) -> list[Difference]:
     return out
 
 
+TUNED_BUDGET = ("trials", "seeds", "first_seed", "episodes")
+"""The budget a tuned preset records (``extra.tuned.budget``, :mod:`cdqn.tuning.presets`)."""
+
+
+def tuned_budget(runs: pd.DataFrame) -> str | None:
+    """``20 trials × 3 seeds (from 100) × 500 episodes`` when every run of ``runs`` trains a
+    preset tuned with that one budget, else None."""
+    values = []
+    for name in TUNED_BUDGET:
+        texts = set(setting_values(runs, f"extra.tuned.budget.{name}"))
+        if len(texts) != 1 or None in texts:
+            return None
+        values.append(texts.pop())
+    trials, seeds, first, episodes = values
+    return f"{trials} trials × {seeds} seeds (from {first}) × {episodes} episodes"
+
+
+def searched(runs: pd.DataFrame, diff: Difference) -> bool:
+    """Whether ``diff``'s setting was chosen for every agent of its column by a search of the
+    same budget that offered it to each (the agents' tuned presets, :func:`tuned_budget`)."""
+    col = runs[runs["env"] == diff.env]
+    if tuned_budget(col) is None:
+        return False
+    paths = [c for c in col.columns if c.startswith("params.extra.tuned.space.")]
+    for _, df in col.groupby("controller"):
+        offered = {str(v) for c in paths if c.endswith(".path") for v in df[c].dropna()}
+        if diff.key not in offered:
+            return False
+    return True
+
+
 def caption(runs: pd.DataFrame) -> str:
     """The table's caption line on its comparison: what every column's agents share and,
-    one by one, the shared settings that differ between the agents of a column."""
+    one by one, the shared settings that differ between the agents of a column: chosen for
+    each agent by an equal search (:func:`searched`), or not on equal terms."""
     keys = ", ".join(s.key for s in SHARED_SETTINGS)
     diffs = column_differences(runs)
-    if not diffs:
-        return f"Like for like: the agents of each column share {keys}."
-    listed = ". ".join(d.text() for d in diffs)
+    chosen = [d for d in diffs if searched(runs, d)]
+    unequal = [d for d in diffs if d not in chosen]
+    text = f"the agents of each column share {keys}"
+    if chosen:
+        envs = sorted({d.env for d in chosen})
+        budgets = "; ".join(f"{env_text(e)} {tuned_budget(runs[runs['env'] == e])}" for e in envs)
+        listed = ". ".join(d.text() for d in chosen)
+        text += (
+            f", or were offered the same and chose by searches of one budget per column "
+            f"({budgets}): {listed}"
+        )
+    if not unequal:
+        return f"Like for like: {text}."
+    listed = ". ".join(d.text() for d in unequal)
     return (
-        f"Not like for like: the agents of a column share {keys} except: {listed}. "
+        f"Not like for like: {text}; except: {listed}. "
         "Cells of such a column are not a comparison on equal terms."
     )
 

@@ -16,7 +16,7 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from analysis import make_figures, make_table
-from analysis.columns import column_differences
+from analysis.columns import caption, column_differences
 from analysis.runs import EPISODE_METRICS, RunStore, comparable_runs
 from analysis.table import run_scores
 from tests.conftest import TINY, compose_config
@@ -538,3 +538,38 @@ def test_q_gap_discounts_with_the_agents_gamma() -> None:
                       "params.train.discount": "1.0"})  # fmt: skip
     assert agent_gamma(ddqn) == 0.99
     assert agent_gamma(ddqn.replace({"ddqn": "hinf"})) == 1.0
+
+
+def _tuned_runs(budgets: dict[str, str], offered: dict[str, list[str]]) -> pd.DataFrame:
+    """Two runs per agent of one column: each agent's own ε decrease, its preset's budget
+    (episodes) and the paths its search offered."""
+    rows = []
+    for i, ctrl in enumerate(budgets):
+        for seed in (0, 1):
+            row = {"env": "cartpole", "controller": ctrl, "seed": seed,
+                   "params.train.eps_dec": str(1e-4 * (i + 1)),
+                   "params.extra.tuned.budget.trials": "20",
+                   "params.extra.tuned.budget.seeds": "3",
+                   "params.extra.tuned.budget.first_seed": "100",
+                   "params.extra.tuned.budget.episodes": budgets[ctrl]}  # fmt: skip
+            for n, path in enumerate(offered[ctrl]):
+                row[f"params.extra.tuned.space.d{n}.path"] = path
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def test_a_setting_chosen_by_equal_searches_is_like_for_like() -> None:
+    """An ε decrease that differs because each agent's search of the same budget chose it
+    keeps the column like for like; another budget, or a search that did not offer it, does
+    not."""
+    both = {"ddqn": ["train.eps_dec"], "hinf_f": ["train.eps_dec", "train.lr"]}
+    text = caption(_tuned_runs({"ddqn": "500", "hinf_f": "500"}, both))
+    assert text.startswith("Like for like")
+    assert "20 trials × 3 seeds (from 100) × 500 episodes" in text
+    assert "train.eps_dec differs" in text
+    other_budget = caption(_tuned_runs({"ddqn": "500", "hinf_f": "200"}, both))
+    assert other_budget.startswith("Not like for like")
+    not_offered = {"ddqn": ["train.lr"], "hinf_f": ["train.eps_dec"]}
+    assert caption(_tuned_runs({"ddqn": "500", "hinf_f": "500"}, not_offered)).startswith(
+        "Not like for like"
+    )
