@@ -13,6 +13,7 @@ layer module                                 what it holds
 1     :mod:`~cdqn.training.interrupt`        SIGINT/SIGTERM as a stop at the next boundary
 1     :mod:`~cdqn.training.result`           what a run or a population returns and prints
 1     :mod:`~cdqn.training.batching`         which seeds train as one batch (sweeps too)
+1     :mod:`~cdqn.training.divergence`       the divergence check of every run
 2     :mod:`~cdqn.training.loop`             the training loop of a single run
 2     :mod:`~cdqn.training.population_step`  the batched controlled agent (compiled kernels)
 3     :mod:`~cdqn.training.ddqn_population`  the batched Double DQN agent
@@ -30,7 +31,7 @@ layer module                                 what it holds
 """
 
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("signals", "interrupt", "result", "batching"),
+    ("signals", "interrupt", "result", "batching", "divergence"),
     ("loop", "population_step"),
     ("ddqn_population", "population_loop"),
     ("build",),
