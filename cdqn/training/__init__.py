@@ -24,9 +24,10 @@ layer module                                 what it holds
 5     :mod:`~cdqn.training.callbacks`        Hydra callbacks: job outcomes, sweep summary
 6     :mod:`~cdqn.training.checkpoint`       a single run's checkpoints (store and local)
 6     :mod:`~cdqn.training.population_checkpoint`  a population member's checkpoints
-7     :mod:`~cdqn.training.single`           a single run: train, record, checkpoint, close
-7     :mod:`~cdqn.training.population`       a population's runs: the same for K seeds
-8     :mod:`~cdqn.training.run`              new run or resume, single or population
+7     :mod:`~cdqn.training.lifecycle`        a run's life: open, record, checkpoint, close, resume
+8     :mod:`~cdqn.training.single`           a single run: train, record, checkpoint, close
+8     :mod:`~cdqn.training.population`       a population's runs: the same for K seeds
+9     :mod:`~cdqn.training.run`              new run or resume, single or population
 ====  =====================================  ==============================================
 """
 
@@ -37,6 +38,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("build",),
     ("tracking", "sweep", "callbacks"),
     ("checkpoint", "population_checkpoint"),
+    ("lifecycle",),
     ("single", "population"),
     ("run",),
 )

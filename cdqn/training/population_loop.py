@@ -55,7 +55,8 @@ from cdqn.training.population_step import CHECK, DONE, ControlledPopulation
 from cdqn.training.signals import COLUMNS, SignalBuffer
 from cdqn.vector_env import VectorEnv
 
-if TYPE_CHECKING:  # a member's recorder is opened by the population's runs, not by the loop
+if TYPE_CHECKING:  # a member's run is opened by its lifecycle, not by the loop
+    from cdqn.training.checkpoint import CheckpointStore
     from cdqn.training.tracking import Recorder
 
 _RECORD = tuple(column(c) for c in StepRecord._fields)
@@ -69,6 +70,9 @@ class Member:
     seed: int
     cfg: DictConfig
     recorder: Recorder | None = None
+    """Writes the member's MLflow run (:mod:`cdqn.training.lifecycle`)."""
+    store: CheckpointStore | None = None
+    """The checkpoints of the member's run."""
     signals: SignalBuffer = field(default_factory=SignalBuffer)
     returns: list[float] = field(default_factory=list)
     episode: int = 0
