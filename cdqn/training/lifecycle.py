@@ -107,28 +107,19 @@ class RunLifecycle:
         run: Run,
         store: CheckpointStore | None,
         pending: list[tuple[str, float, int, int]],
+        to_close: bool = False,
     ) -> None:
         """Reopen ``run`` as member ``m``'s (restored to episode ``m.episode``), with the
         checkpoint ``store`` it was restored from; ``pending``: metrics the store did not
-        take before it went away, written with the next ones."""
-        if run.info.status == "RUNNING":
+        take before it went away, written with the next ones.  ``to_close``: a member that
+        ended while the store was away, reopened only to be closed (a run left RUNNING is
+        no surprise then)."""
+        if run.info.status == "RUNNING" and not to_close:
             log.warning(
                 "run %s is marked RUNNING (its process ended without closing it, e.g. SIGKILL); "
                 "continuing it. Stop any process still training it first.",
                 run.info.run_id,
             )
-        self.reopen(m, client, run, store, pending)
-
-    def reopen(
-        self,
-        m: Member,
-        client: MlflowClient,
-        run: Run,
-        store: CheckpointStore | None,
-        pending: list[tuple[str, float, int, int]],
-    ) -> None:
-        """:meth:`resume` without the warning about a run left RUNNING (a member that
-        ended while the store was away is reopened only to be closed)."""
         run_id = run.info.run_id
         m.recorder = Recorder.attach(self.uri, run_id)
         m.store = store

@@ -550,7 +550,7 @@ def close_from_local(uri: str, client: MlflowClient, run: Any, tracking: Any) ->
     if closing.signals is not None:
         m.signals.load(closing.signals)
     life = RunLifecycle(conf, uri, MemberCheckpoint)
-    life.reopen(m, client, run, None, pending)
+    life.resume(m, client, run, None, pending, to_close=True)
     log.info("closing run %s (seed %d, %s while the store was away) from %s",
              run_id, m.seed, m.status, local_path(folder, run_id).parent)  # fmt: skip
     model = local_path(folder, run_id).parent / "model"
