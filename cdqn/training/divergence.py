@@ -39,20 +39,16 @@ def is_divergence(status: str, reason: str | None) -> bool:
     return status == "FAILED" and (reason or "").startswith(PREFIX)
 
 
-def healthy(rec: StepRecord, q_limit: float, loss_seen: bool) -> bool:
-    """The test of one step (module docstring); ``loss_seen``: a finite loss came before."""
-    return (
+def check_step(rec: StepRecord, q_limit: float, loss_seen: bool, episode: int, t: int) -> bool:
+    """Raise the :class:`DivergenceError` of step ``t`` of ``episode`` if ``rec`` fails the
+    test (module docstring; ``loss_seen``: a finite loss came before); else whether a finite
+    loss has been seen now."""
+    if not (
         abs(rec.q1) <= q_limit
         and abs(rec.q2) <= q_limit
         and math.isfinite(rec.u + rec.x_e)
         and (math.isfinite(rec.loss) or (not loss_seen and math.isnan(rec.loss)))
-    )
-
-
-def check_step(rec: StepRecord, q_limit: float, loss_seen: bool, episode: int, t: int) -> bool:
-    """Raise the :class:`DivergenceError` of step ``t`` of ``episode`` if ``rec`` fails the
-    test; else whether a finite loss has been seen now."""
-    if not healthy(rec, q_limit, loss_seen):
+    ):
         diagnose(rec, q_limit, episode, t)
     return loss_seen or not math.isnan(rec.loss)
 
