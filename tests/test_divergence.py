@@ -16,6 +16,7 @@ from mlflow.tracking import MlflowClient
 from cdqn.agents.base import StepRecord
 from cdqn.network import load_network
 from cdqn.training.callbacks import JOB_FILE, format_summary, summarize
+from cdqn.training.divergence import check_step, failure_reason, is_divergence
 from cdqn.training.loop import DivergenceError, train
 from cdqn.training.run import run
 from cdqn.training.signals import SignalBuffer
@@ -147,6 +148,23 @@ def test_non_finite_controller_state_is_divergence() -> None:
     with pytest.raises(DivergenceError, match="non-finite controller state"):
         _train([_rec(), _rec()], x_c=np.array([0.0, np.nan]))
     assert _train([_rec(), _rec()], x_c=np.zeros(2)).episode == 1
+
+
+def test_one_check_for_every_run() -> None:
+    """The step test a single run and a population member share: a NaN loss passes only
+    before the first finite one, and a run it fails is the one resume refuses."""
+    fine = StepRecord(0.5, 1.0, 1.0, 0.0, 0.0, 1.0, 1.0)
+    no_update = fine._replace(loss=float("nan"))
+    assert check_step(no_update, 1e6, False, 0, 0) is False
+    assert check_step(fine, 1e6, False, 0, 1) is True
+    with pytest.raises(
+        DivergenceError, match=r"non-finite loss = nan \(episode 0, step 2\)"
+    ) as exc:
+        check_step(no_update, 1e6, True, 0, 2)
+    reason = failure_reason(exc.value)
+    assert is_divergence("FAILED", reason)
+    assert not is_divergence("KILLED", reason)
+    assert not is_divergence("FAILED", "RuntimeError: boom")
 
 
 def test_summary_lists_failed_jobs_with_reasons(tmp_path: Path) -> None:

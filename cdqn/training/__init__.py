@@ -13,6 +13,7 @@ layer module                                 what it holds
 1     :mod:`~cdqn.training.interrupt`        SIGINT/SIGTERM as a stop at the next boundary
 1     :mod:`~cdqn.training.result`           what a run or a population returns and prints
 1     :mod:`~cdqn.training.batching`         which seeds train as one batch (sweeps too)
+1     :mod:`~cdqn.training.divergence`       the divergence check of every run
 2     :mod:`~cdqn.training.loop`             the training loop of a single run
 2     :mod:`~cdqn.training.population_step`  the batched controlled agent (compiled kernels)
 3     :mod:`~cdqn.training.ddqn_population`  the batched Double DQN agent
@@ -23,19 +24,21 @@ layer module                                 what it holds
 5     :mod:`~cdqn.training.callbacks`        Hydra callbacks: job outcomes, sweep summary
 6     :mod:`~cdqn.training.checkpoint`       a single run's checkpoints (store and local)
 6     :mod:`~cdqn.training.population_checkpoint`  a population member's checkpoints
-7     :mod:`~cdqn.training.single`           a single run: train, record, checkpoint, close
-7     :mod:`~cdqn.training.population`       a population's runs: the same for K seeds
-8     :mod:`~cdqn.training.run`              new run or resume, single or population
+7     :mod:`~cdqn.training.lifecycle`        a run's life: open, record, checkpoint, close, resume
+8     :mod:`~cdqn.training.single`           a single run: train, record, checkpoint, close
+8     :mod:`~cdqn.training.population`       a population's runs: the same for K seeds
+9     :mod:`~cdqn.training.run`              new run or resume, single or population
 ====  =====================================  ==============================================
 """
 
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("signals", "interrupt", "result", "batching"),
+    ("signals", "interrupt", "result", "batching", "divergence"),
     ("loop", "population_step"),
     ("ddqn_population", "population_loop"),
     ("build",),
     ("tracking", "sweep", "callbacks"),
     ("checkpoint", "population_checkpoint"),
+    ("lifecycle",),
     ("single", "population"),
     ("run",),
 )

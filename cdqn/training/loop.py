@@ -16,23 +16,17 @@ from numba import njit
 from tqdm.auto import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from cdqn.agents.base import Agent, StepRecord
+from cdqn.agents.base import Agent
 from cdqn.agents.episodic_replay import EpisodeTail, qualifies
 from cdqn.config import ReplayConfig
 from cdqn.control.box import Box
 from cdqn.records import Signal, column
+from cdqn.training.divergence import DivergenceError as DivergenceError
+from cdqn.training.divergence import check_controller, check_replayed, check_step
 from cdqn.training.signals import SignalBuffer
 
 RATE_WINDOW = 20
 """Episodes over which the progress bar's steps/s is measured (wall time, everything in)."""
-
-
-class DivergenceError(RuntimeError):
-    """Learning diverged: a non-finite or too large value in the loss, Q or controller."""
-
-    def __init__(self, reason: str, episode: int, step: int) -> None:
-        super().__init__(f"{reason} (episode {episode}, step {step})")
-        self.reason, self.episode, self.step = reason, episode, step
 
 
 _LOSS, _U, _THETA1, _THETA2 = map(column, (Signal.LOSS, Signal.U, Signal.THETA1, Signal.THETA2))
@@ -168,116 +162,124 @@ def train(
     """Run ``episodes`` episodes (from ``state.episode`` on) and return the final state.
 
     The environment is seeded with ``seed`` at the first episode of a fresh run.  Raises
-    :class:`DivergenceError` when a step's loss, Q-values, control u or integrator x_e are
-    non-finite, ``|Q|`` exceeds ``q_limit``, or the controller's state is non-finite at the
-    end of an episode; everything up to that step is in ``signals``.  A NaN loss before the
-    first finite one means "no update yet" (Double DQN before ``learning_starts``).
-    ``should_stop`` is asked after each episode; when it answers True the loop returns
-    early, at an episode boundary.  ``replay``: episodic replay of the controlled agents
+    :class:`DivergenceError` when a step fails the divergence check of
+    :mod:`cdqn.training.divergence` (loss, Q-values, control u or integrator x_e non-finite,
+    ``|Q|`` above ``q_limit``, the controller's state non-finite at the end of an episode);
+    everything up to that step is in ``signals``.  ``should_stop`` is asked after each
+    episode; when it answers True the loop returns early, at an episode boundary.
+    ``replay``: episodic replay of the controlled agents
     (:mod:`cdqn.agents.episodic_replay`) after each qualifying episode.  ``box``: the
     design's NTK box, for the per-episode ``theta1_outside_box``, ``ratio_below_box`` and
     ``ratio_above_box``.
     """
     state = state or TrainState()
-    redirect = logging_redirect_tqdm(_console_loggers()) if progress else contextlib.nullcontext()
-    redirect.__enter__()  # log lines go above the bar instead of breaking it
-    bar = tqdm(
-        total=episodes,
-        initial=state.episode,
-        desc=desc,
-        disable=not progress,
-        unit="ep",
-        dynamic_ncols=True,
-        leave=True,
-    )
-    recent = deque([(state.total_steps, time.perf_counter())], maxlen=RATE_WINDOW + 1)
-    controller = getattr(agent, "controller", None)
-    loss_seen = False
     tail = EpisodeTail(replay) if replay is not None and replay.repeats > 0 else None
+    run = _Episodes(env, agent, signals, seed, discount, q_limit, replay, tail, box)
+    bar = _Bar(episodes, state, desc, progress)
     try:
         while state.episode < episodes:
-            ep = state.episode
-            obs, _ = env.reset(seed=seed if ep == 0 else None)
-            agent.start_episode()
-            start_row, ret = signals.n, 0.0
-            if tail is not None:
-                tail.clear()
-            for t in range(1_000_000_000):
-                action = agent.act(obs)
-                next_obs, reward, terminated, truncated, _ = env.step(action)
-                rec = agent.update(obs, action, float(reward), next_obs, bool(terminated))
-                if tail is not None:
-                    tail.append(obs, action, float(reward), next_obs, bool(terminated))
-                signals.append(ep, t, float(reward), rec)
-                if not (
-                    abs(rec.q1) <= q_limit
-                    and abs(rec.q2) <= q_limit
-                    and math.isfinite(rec.u + rec.x_e)
-                    and (math.isfinite(rec.loss) or (not loss_seen and math.isnan(rec.loss)))
-                ):
-                    _diagnose(rec, q_limit, ep, t)
-                loss_seen = loss_seen or not math.isnan(rec.loss)
-                ret += float(reward)
-                obs = next_obs
-                if terminated or truncated:
-                    break
-            replayed = 0
-            if tail is not None and qualifies(replay, bool(terminated), bool(truncated), ret):
-                for rec in agent.replay(tail.transitions(), replay.repeats):
-                    if not _healthy(rec, q_limit):
-                        _diagnose(rec, q_limit, ep, t)
-                    replayed += 1
-            x_c = getattr(controller, "x", None)
-            if x_c is not None and not np.all(np.isfinite(x_c)):
-                raise DivergenceError(f"non-finite controller state x_c = {x_c}", ep, t)
-            state.returns.append(ret)
-            length = signals.n - start_row
-            state.total_steps += length
-            state.episode += 1
-            stats = episode_stats(
-                ep, signals.rows(start_row), state.returns, discount, replayed, box
-            )
+            stats = run.episode(state)
             if on_episode is not None:
                 on_episode(stats, state)
-            recent.append((state.total_steps, time.perf_counter()))
-            steps, secs = recent[-1][0] - recent[0][0], recent[-1][1] - recent[0][1]
-            bar.set_postfix(
-                ret=f"{ret:.0f}",
-                ma100=f"{stats.return_ma100:.1f}",
-                eps=f"{agent.epsilon:.2f}",
-                sps=f"{steps / max(secs, 1e-9):.0f}",
-                refresh=False,
-            )
-            bar.update(1)
+            bar.update(state, stats, agent.epsilon)
             if should_stop is not None and should_stop():
                 break
     finally:
         bar.close()
-        redirect.__exit__(None, None, None)
     return state
 
 
-def _healthy(rec: StepRecord, q_limit: float) -> bool:
-    """The divergence test of a replayed update (every one has a finite loss)."""
-    return (
-        abs(rec.q1) <= q_limit
-        and abs(rec.q2) <= q_limit
-        and math.isfinite(rec.u + rec.x_e + rec.loss)
-    )
+@dataclass
+class _Episodes:
+    """The episodes of one run: steps, updates, signal rows, replay and divergence checks."""
+
+    env: gym.Env
+    agent: Agent
+    signals: SignalBuffer
+    seed: int
+    discount: float
+    q_limit: float
+    replay: ReplayConfig | None
+    tail: EpisodeTail | None
+    box: Box | None
+    loss_seen: bool = False
+    """A finite loss was seen (a NaN loss before that means "no update yet")."""
+
+    def episode(self, state: TrainState) -> EpisodeStats:
+        """Play episode ``state.episode`` to its end and advance ``state``; its metrics."""
+        env, agent, signals, tail, q_limit = (
+            self.env, self.agent, self.signals, self.tail, self.q_limit
+        )  # fmt: skip
+        ep = state.episode
+        obs, _ = env.reset(seed=self.seed if ep == 0 else None)
+        agent.start_episode()
+        start_row, ret = signals.n, 0.0
+        if tail is not None:
+            tail.clear()
+        for t in range(1_000_000_000):
+            action = agent.act(obs)
+            next_obs, reward, terminated, truncated, _ = env.step(action)
+            rec = agent.update(obs, action, float(reward), next_obs, bool(terminated))
+            if tail is not None:
+                tail.append(obs, action, float(reward), next_obs, bool(terminated))
+            signals.append(ep, t, float(reward), rec)
+            self.loss_seen = check_step(rec, q_limit, self.loss_seen, ep, t)
+            ret += float(reward)
+            obs = next_obs
+            if terminated or truncated:
+                break
+        replayed = self._replay(bool(terminated), bool(truncated), ret, ep, t)
+        check_controller(getattr(getattr(agent, "controller", None), "x", None), ep, t)
+        state.returns.append(ret)
+        state.total_steps += signals.n - start_row
+        state.episode += 1
+        rows = signals.rows(start_row)
+        return episode_stats(ep, rows, state.returns, self.discount, replayed, self.box)
+
+    def _replay(self, terminated: bool, truncated: bool, ret: float, ep: int, t: int) -> int:
+        """Episodic replay of the episode that ended, if it qualifies; the updates made."""
+        replay, tail = self.replay, self.tail
+        if tail is None or replay is None or not qualifies(replay, terminated, truncated, ret):
+            return 0
+        replayed = 0
+        for rec in self.agent.replay(tail.transitions(), replay.repeats):
+            check_replayed(rec, self.q_limit, ep, t)
+            replayed += 1
+        return replayed
+
+
+class _Bar:
+    """The progress bar: episodes, return, MA100, ε and steps/s over the last
+    :data:`RATE_WINDOW` episodes; log lines go above it instead of breaking it."""
+
+    def __init__(self, episodes: int, state: TrainState, desc: str, progress: bool) -> None:
+        self.redirect = (
+            logging_redirect_tqdm(_console_loggers()) if progress else contextlib.nullcontext()
+        )
+        self.redirect.__enter__()
+        self.bar = tqdm(total=episodes, initial=state.episode, desc=desc, disable=not progress,
+                        unit="ep", dynamic_ncols=True, leave=True)  # fmt: skip
+        self.recent = deque([(state.total_steps, time.perf_counter())], maxlen=RATE_WINDOW + 1)
+
+    def update(self, state: TrainState, stats: EpisodeStats, epsilon: float) -> None:
+        self.recent.append((state.total_steps, time.perf_counter()))
+        steps = self.recent[-1][0] - self.recent[0][0]
+        secs = self.recent[-1][1] - self.recent[0][1]
+        self.bar.set_postfix(
+            ret=f"{stats.episode_return:.0f}",
+            ma100=f"{stats.return_ma100:.1f}",
+            eps=f"{epsilon:.2f}",
+            sps=f"{steps / max(secs, 1e-9):.0f}",
+            refresh=False,
+        )
+        self.bar.update(1)
+
+    def close(self) -> None:
+        self.bar.close()
+        self.redirect.__exit__(None, None, None)
 
 
 def _console_loggers() -> list[logging.Logger]:
     """The root logger and the loggers with console handlers of their own (MLflow's)."""
     named = [logging.getLogger(n) for n in ("mlflow",)]
     return [logging.getLogger(), *[lg for lg in named if lg.handlers]]
-
-
-def _diagnose(rec: StepRecord, q_limit: float, ep: int, t: int) -> None:
-    """Raise the :class:`DivergenceError` that names what went wrong in ``rec``."""
-    for name, value in (("Q1", rec.q1), ("Q2", rec.q2), ("u", rec.u), ("x_e", rec.x_e)):
-        if not math.isfinite(value):
-            raise DivergenceError(f"non-finite {name} = {value}", ep, t)
-    if not math.isfinite(rec.loss):
-        raise DivergenceError(f"non-finite loss = {rec.loss}", ep, t)
-    q = max(abs(rec.q1), abs(rec.q2))
-    raise DivergenceError(f"|Q| = {q:.3g} above train.q_limit={q_limit:g}", ep, t)

@@ -6,7 +6,8 @@ controllers, SGD steps, signal rows) is two compiled calls built from the row fu
 single run uses (:mod:`cdqn.training.population_step`); their environments step as one
 (:mod:`cdqn.vector_env`); :func:`cdqn.training.population_loop.train_population` is the
 loop.  So the per-step Python of the trainer, the environment and the bookkeeping is paid
-once for ``K`` members.  This module opens, checkpoints and closes the members' runs.
+once for ``K`` members.  This module takes the members' runs through their lifecycle
+(:mod:`cdqn.training.lifecycle`).
 
 Each member is still its own MLflow run with the content of a single run of its seed
 (params with ``seed`` set to the member's seed and ``train.population=1``, the same tags
@@ -40,10 +41,10 @@ from __future__ import annotations
 import logging
 import math
 import shutil
-import tempfile
 import time
 import uuid
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -55,12 +56,12 @@ from cdqn.config import Config, resolve_tracking_uri, validate
 from cdqn.control.box import Box
 from cdqn.control.factory import make_controller
 from cdqn.control.setup import ControllerSetup
-from cdqn.network import QNetwork, save_network
-from cdqn.records import Artifact, Tag, folder
+from cdqn.network import QNetwork
+from cdqn.records import Tag
 from cdqn.training.build import build_population, member_config, member_seeds
-from cdqn.training.checkpoint import ROOT as CHECKPOINT_ROOT
-from cdqn.training.checkpoint import CheckpointStore, load_local, local_path, save_local
+from cdqn.training.checkpoint import CheckpointStore, load_local, local_path
 from cdqn.training.interrupt import GracefulStop
+from cdqn.training.lifecycle import RunLifecycle
 from cdqn.training.population_checkpoint import (
     CLOSING_FILE,
     MemberCheckpoint,
@@ -80,18 +81,8 @@ from cdqn.training.sweep import (
     final_score,
     find_finished,
     find_resumable,
-    process_tags,
-    run_name,
 )
-from cdqn.training.tracking import (
-    Recorder,
-    TrackingOutage,
-    check_tracking,
-    closes_for_good,
-    fail_fast_http,
-    flatten,
-    git_commit,
-)
+from cdqn.training.tracking import Recorder, TrackingOutage, check_tracking
 from cdqn.vector_env import VectorEnv
 
 log = logging.getLogger("cdqn")
@@ -114,40 +105,22 @@ def start_population(
     uri = resolve_tracking_uri(conf.tracking.uri)
     check_tracking(uri, conf.tracking.timeout)
     ensure_store(uri, conf.tracking.experiment)
-    members = [
-        Member(s, member_config(cfg, s)) for s in member_seeds(conf.seed, conf.train.population)
-    ]
+    seeds = member_seeds(conf.seed, conf.train.population)
+    members = [Member(s, member_config(cfg, s)) for s in seeds]
     results: dict[int, RunResult] = {}
     if conf.tracking.skip_finished:
-        client = MlflowClient(uri)
-        for m in members:
-            done = find_finished(client, conf.tracking.experiment, config_hash(m.cfg))
-            if done is not None:
-                log.info(
-                    "skipping %s/%s seed %d: run %s already FINISHED with this configuration",
-                    conf.env.name, conf.controller.name, m.seed, done.info.run_id,
-                )  # fmt: skip
-                results[m.seed] = RunResult(
-                    done.info.run_id, "FINISHED", final_score(client, done), "skipped"
-                )
-        members = [m for m in members if m.seed not in results]
-        if members:  # continue this job's KILLED members (cdqn.training.sweep)
-            signum = _resume_killed(cfg, uri, members, results, progress)
-            members = [m for m in members if m.seed not in results]
-            if signum is not None:
-                return PopulationResult([results[s] for s in sorted(results)], signum)
+        members, signum = _skip_finished(cfg, conf, uri, members, results, progress)
+        if signum is not None:
+            return PopulationResult([results[s] for s in sorted(results)], signum)
     if not members:
         return PopulationResult([results[s] for s in sorted(results)])
     setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
-
     agent, venv = build_population(conf, setup, [m.seed for m in members])
-    seeds = member_seeds(conf.seed, conf.train.population)
-    population_id = uuid.uuid4().hex
+    life = RunLifecycle(conf, uri, MemberCheckpoint)
+    tags = {Tag.POPULATION: f"{seeds[0]}-{seeds[-1]}", Tag.POPULATION_ID: uuid.uuid4().hex}
     try:
         for m in members:
-            m.recorder = start_member_run(
-                m, conf, setup, uri, f"{seeds[0]}-{seeds[-1]}", population_id
-            )
+            life.open(m, setup, tags)
         log.info(
             "MLflow runs %s (%s, %s, seeds %d-%d)",
             ", ".join(m.recorder.run_id for m in members if m.recorder is not None),
@@ -157,34 +130,53 @@ def start_population(
         for env in venv.envs:
             env.close()
         raise
-    signum = train_members(
-        conf,
-        agent,
-        venv,
-        members,
-        results,
-        progress,
-        observe=observe,
-        should_stop=should_stop,
-        box=setup.box(),
-    )
+    signum = train_members(life, agent, venv, members, results, progress, observe=observe,
+                           should_stop=should_stop, box=setup.box())  # fmt: skip
     return PopulationResult([results[s] for s in sorted(results)], signum)
 
 
-def train_members(
+def _skip_finished(
+    cfg: DictConfig,
     conf: Config,
+    uri: str,
+    members: list[Member],
+    results: dict[int, RunResult],
+    progress: bool,
+) -> tuple[list[Member], int | None]:
+    """A restarted sweep (``tracking.skip_finished``): the results of ``members`` whose run
+    FINISHED go into ``results``, KILLED ones are continued (:func:`_resume_killed`).  The
+    members still to train, and the signal that stopped a continued one, if any."""
+    client = MlflowClient(uri)
+    for m in members:
+        done = find_finished(client, conf.tracking.experiment, config_hash(m.cfg))
+        if done is not None:
+            log.info(
+                "skipping %s/%s seed %d: run %s already FINISHED with this configuration",
+                conf.env.name, conf.controller.name, m.seed, done.info.run_id,
+            )  # fmt: skip
+            results[m.seed] = RunResult(
+                done.info.run_id, "FINISHED", final_score(client, done), "skipped"
+            )
+    members = [m for m in members if m.seed not in results]
+    if not members:
+        return members, None
+    signum = _resume_killed(cfg, uri, members, results, progress)  # (cdqn.training.sweep)
+    return [m for m in members if m.seed not in results], signum
+
+
+def train_members(
+    life: RunLifecycle,
     agent: ControlledPopulation,
     venv: VectorEnv,
     members: list[Member],
     results: dict,
     progress: bool,
     sequence: int = 0,
-    stores: dict[int, CheckpointStore] | None = None,
     observe: Callable[[Member], None] | None = None,
     should_stop: Callable[[], bool] | None = None,
     box: Box | None = None,
 ) -> int | None:
-    """Train ``members`` (their runs open) to the end, with checkpoints (every
+    """Train ``members`` (their runs open in ``life``) to the end, with checkpoints (every
     ``train.checkpoint_every`` episodes of the slowest member and on SIGINT/SIGTERM, see
     :mod:`cdqn.training.population_checkpoint`); put each member's ``RunResult`` into
     ``results`` and close its run.  ``sequence``: number of the last checkpoint (a resumed
@@ -194,169 +186,175 @@ def train_members(
 
     A tracking store that does not answer for ``tracking.retry_s`` stops the population as
     a signal does, at the end of the population step: every member still training is
-    checkpointed into ``tracking.local_checkpoints`` (:func:`_write_local`), a member that
-    ended in that step keeps what closing its run writes there (:func:`close_locally`), all
-    runs stay RUNNING in the store, and each member's result has status ``OUTAGE``;
+    checkpointed into ``tracking.local_checkpoints``, a member that ended in that step
+    keeps what closing its run writes there (:meth:`RunLifecycle.close_locally`), all runs
+    stay RUNNING in the store, and each member's result has status ``OUTAGE``;
     :func:`resume_population` continues from those files once the store answers again."""
-    envs = list(venv.envs)
-    episodes = conf.train.episodes
-    folder = conf.tracking.local_checkpoints
-    stores = stores or {
-        m.seed: CheckpointStore(
-            m.recorder.client, m.recorder.run_id, conf.train.signals, kind=MemberCheckpoint
-        )
-        for m in members
-        if m.recorder is not None
-    }
-    counter = [sequence]
-    outage: list[TrackingOutage] = []
-    """The outage that stopped the population (at most one)."""
+    conf = life.conf
     for m in members:  # writes retried while the store does not answer (tracking.retry_s)
         if m.recorder is not None:
-            m.recorder.retry_s = stores[m.seed].retry_s = conf.tracking.retry_s
-            if m.recorder.uri.startswith(("http://", "https://")):
-                fail_fast_http(conf.tracking.timeout)
-
-    def went_away(err: TrackingOutage) -> None:
-        """No more writes to the store: metrics are only queued from now on."""
-        if not outage:
-            outage.append(err)
+            life.watch(m)
+    runs = _PopulationRuns(life, agent, venv, members, results, sequence, observe,
+                           should_stop, box)  # fmt: skip
+    with runs.stop:
+        try:
+            train_population(
+                agent,
+                venv,
+                members,
+                episodes=conf.train.episodes,
+                discount=conf.train.discount,
+                q_limit=conf.train.q_limit,
+                on_episode=runs.on_episode,
+                on_member_end=runs.on_member_end,
+                progress=progress and conf.train.progress,
+                should_stop=runs.stopping,
+                checkpoints=Checkpoints(
+                    conf.train.checkpoint_every, venv.checkpointable, runs.capture, runs.write
+                ),  # fmt: skip
+                replay=conf.weights.replay if conf.controller.name != "ddqn" else None,
+                box=box,
+            )
+        except BaseException as err:  # close the members' runs that are still open
+            runs.stop.closing()
+            runs.close_open(err)
+            raise
+        finally:
+            for env in venv.envs:
+                env.close()
+    if runs.outage is not None:
+        message = _outage_message(runs.outage, members, conf)
+        log.error("%s", message)
         for m in members:
+            results[m.seed].reason = message
+    return runs.stop.signum
+
+
+class _PopulationRuns:
+    """What the loop of a population calls back into: recording, checkpoints and closing
+    of the members' runs, and the outage that stopped it (at most one)."""
+
+    def __init__(
+        self,
+        life: RunLifecycle,
+        agent: ControlledPopulation,
+        venv: VectorEnv,
+        members: list[Member],
+        results: dict,
+        sequence: int,
+        observe: Callable[[Member], None] | None,
+        should_stop: Callable[[], bool] | None,
+        box: Box | None,
+    ) -> None:
+        self.life, self.agent, self.venv, self.members = life, agent, venv, members
+        self.results, self.sequence, self.box = results, sequence, box
+        self.observe, self.should_stop = observe, should_stop
+        self.outage: TrackingOutage | None = None
+        self.boundaries = not venv.checkpointable  # members captured at episode boundaries
+        self.stop = GracefulStop()
+        self.t0 = time.perf_counter()
+        self.before = {m.seed: m.signals.n for m in members}  # steps of resumed members
+
+    def went_away(self, err: TrackingOutage) -> None:
+        """No more writes to the store: metrics are only queued from now on."""
+        if self.outage is None:
+            self.outage = err
+        for m in self.members:
             if m.recorder is not None:
                 m.recorder.flush_seconds = math.inf
 
-    boundaries = not venv.checkpointable  # members captured at their episode boundaries
+    def stopping(self) -> bool:
+        return (
+            self.outage is not None
+            or self.stop.requested()
+            or (self.should_stop is not None and self.should_stop())
+        )
 
     def capture(
-        j: int, m: Member, obs: np.ndarray, t: np.ndarray, ret: np.ndarray
+        self, j: int, m: Member, obs: np.ndarray, t: np.ndarray, ret: np.ndarray
     ) -> MemberCheckpoint:
-        rows = m.signals.n if conf.train.signals else 0
-        return capture_member(0, [], m, agent, venv, j, obs, t, ret, rows, boundaries)
+        rows = m.signals.n if self.life.conf.train.signals else 0
+        return capture_member(0, [], m, self.agent, self.venv, j, obs, t, ret, rows,
+                              self.boundaries)  # fmt: skip
 
-    def write(items: list[tuple[Member, MemberCheckpoint]], new: bool) -> None:
-        counter[0] += new
+    def write(self, items: list[tuple[Member, MemberCheckpoint]], new: bool) -> None:
+        """Store the captures as checkpoint ``sequence`` (a new one if ``new``), in the
+        members' runs or, while the store is away, in their local files."""
+        self.sequence += new
         ids = [m.recorder.run_id for m, _ in items if m.recorder is not None]
         for _, ckpt in items:
-            ckpt.sequence, ckpt.population = counter[0], ids
-        if not outage:
+            ckpt.sequence, ckpt.population = self.sequence, ids
+        if self.outage is None:
             try:
                 for m, ckpt in items:
-                    assert m.recorder is not None
-                    m.recorder.flush()
-                    stores[m.seed].save(ckpt, m.signals, announce=False)
-                    m.checkpointed = ckpt.episode
+                    self.life.checkpoint(m, ckpt, announce=False)
                 first = min(c.episode for _, c in items)
                 last = max(c.episode for _, c in items)
                 span = f"episode {first}" if first == last else f"episodes {first}-{last}"
                 what = f"{len(items)} members" if len(items) > 1 else f"seed {items[0][0].seed}"
                 log.debug("checkpoint at %s (%s)", span, what)
             except TrackingOutage as err:
-                went_away(err)
-        if outage:  # every member of this checkpoint into its local file, one sequence
+                self.went_away(err)
+        if self.outage is not None:  # every member of this checkpoint locally, one sequence
             for m, ckpt in items:
-                _write_local(folder, m, ckpt)
+                self.life.keep_locally(m, ckpt)
 
-    def on_episode(m: Member, stats: object) -> None:
+    def on_episode(self, m: Member, stats: object) -> None:
+        try:
+            self.life.record(m, stats)  # type: ignore[arg-type]
+        except TrackingOutage as err:  # the episode's metrics stay pending
+            self.went_away(err)
+        if self.observe is not None:
+            self.observe(m)
+
+    def killed_reason(self, m: Member, during: str) -> str:
         assert m.recorder is not None
-        if stats.episode not in m.logged:
-            try:
-                m.recorder.log_episode(stats)
-            except TrackingOutage as err:  # the episode's metrics stay pending
-                went_away(err)
-        if observe is not None:
-            observe(m)
-
-    stop = GracefulStop()
-    t0 = time.perf_counter()
-    before = {m.seed: m.signals.n for m in members}  # steps of resumed members
-
-    def killed_reason(m: Member, during: str) -> str:
-        assert m.recorder is not None
-        if boundaries:
+        if self.boundaries:
             during = during.replace("during episode", "after episode", 1)
         if m.checkpointed is None:
             return f"{during}; no checkpoint yet, resume={m.recorder.run_id} trains it again"
         where = (
             "checkpoint written"
-            if stop.requested() and m.checkpointed == m.episode
+            if self.stop.requested() and m.checkpointed == m.episode
             else f"the last checkpoint is at episode {m.checkpointed}"
         )
         return f"{during}; {where}, continue the population with resume={m.recorder.run_id}"
 
-    def on_member_end(m: Member, pop: ControlledPopulation, j: int) -> None:
+    def on_member_end(self, m: Member, pop: ControlledPopulation, j: int) -> None:
         assert m.recorder is not None
         net = pop.network(j)
-        if m.status == "KILLED" and not outage:
-            m.reason = killed_reason(
-                m, f"{stop.name or 'stopped'} during episode {m.episode} of {episodes}"
-            )
-        if not outage:
+        episodes = self.life.conf.train.episodes
+        if m.status == "KILLED" and self.outage is None:
+            during = f"{self.stop.name or 'stopped'} during episode {m.episode} of {episodes}"
+            m.reason = self.killed_reason(m, during)
+        if self.outage is None:
             try:
-                finish_member(m, net, conf, box=box)
+                self.life.close(m, net, box=self.box)
             except TrackingOutage as err:
-                went_away(err)
+                self.went_away(err)
         status = m.status
-        if outage:
+        if self.outage is not None:
             status = OUTAGE
             if m.status != "KILLED":  # it ended in the step where the store went away
-                close_locally(m, net, conf, folder)
-        seconds = time.perf_counter() - t0
-        results[m.seed] = RunResult(
+                self.life.close_locally(m, net)
+        seconds = time.perf_counter() - self.t0
+        before = self.before[m.seed]
+        self.results[m.seed] = RunResult(
             m.recorder.run_id, status, m.score, m.reason, returns=list(m.returns),
-            steps=m.signals.n, seconds=seconds, rate=(m.signals.n - before[m.seed]) / seconds,
-            steps_before=before[m.seed],
-            epsilon=float(pop.epsilon[j]), solve_threshold=conf.env.solve_threshold,
+            steps=m.signals.n, seconds=seconds, rate=(m.signals.n - before) / seconds,
+            steps_before=before, epsilon=float(pop.epsilon[j]),
+            solve_threshold=self.life.conf.env.solve_threshold,
         )  # fmt: skip
 
-    def stopping() -> bool:
-        return bool(outage) or stop.requested() or (should_stop is not None and should_stop())
-
-    with stop:
-        try:
-            train_population(
-                agent,
-                venv,
-                members,
-                episodes=episodes,
-                discount=conf.train.discount,
-                q_limit=conf.train.q_limit,
-                on_episode=on_episode,
-                on_member_end=on_member_end,
-                progress=progress and conf.train.progress,
-                should_stop=stopping,
-                checkpoints=Checkpoints(
-                    conf.train.checkpoint_every, venv.checkpointable, capture, write
-                ),
-                replay=conf.weights.replay if conf.controller.name != "ddqn" else None,
-                box=box,
-            )
-        except BaseException as err:  # close the members' runs that are still open
-            stop.closing()
-            for m in members:
-                if m.seed not in results and m.recorder is not None:
-                    m.status = "KILLED" if isinstance(err, KeyboardInterrupt) else "FAILED"
-                    m.reason = f"{type(err).__name__}: {err}"
-                    if m.status == "KILLED":
-                        m.reason = killed_reason(m, f"stopped during episode {m.episode}")
-                    finish_member(m, None, conf)
-            raise
-        finally:
-            for env in envs:
-                env.close()
-    if outage:
-        message = _outage_message(outage[0], members, conf)
-        log.error("%s", message)
-        for m in members:
-            results[m.seed].reason = message
-    return stop.signum
-
-
-def _write_local(folder: str, m: Member, ckpt: MemberCheckpoint) -> None:
-    """Member ``m``'s checkpoint and its metrics not yet written, in its local file."""
-    assert m.recorder is not None
-    pending = [p for p in m.recorder.pending if p[3] < ckpt.episode]  # its episodes only
-    save_local(folder, m.recorder.run_id, ckpt, m.signals, pending)
-    m.checkpointed = ckpt.episode
+    def close_open(self, err: BaseException) -> None:
+        """``err`` stopped the loop: close the runs of the members still open."""
+        for m in self.members:
+            if m.seed not in self.results and m.recorder is not None:
+                m.status = "KILLED" if isinstance(err, KeyboardInterrupt) else "FAILED"
+                m.reason = f"{type(err).__name__}: {err}"
+                if m.status == "KILLED":
+                    m.reason = self.killed_reason(m, f"stopped during episode {m.episode}")
+                self.life.close(m, None)
 
 
 def _outage_message(err: TrackingOutage, members: list[Member], conf: Config) -> str:
@@ -433,68 +431,13 @@ def resume_population(uri: str, tracking: Any, runs: list, progress: bool) -> Po
     setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
     members = [Member(c.seed, cfg) for c, cfg in zip(confs, cfgs, strict=True)]
     agent, venv = build_population(conf, setup, [m.seed for m in members])
+    life = RunLifecycle(conf, uri, MemberCheckpoint)
     try:
-        stores = {
-            m.seed: CheckpointStore(client, r.info.run_id, conf.train.signals, MemberCheckpoint)
-            for m, r in zip(members, runs, strict=True)
-        }
-        found = {m.seed: stores[m.seed].candidates() for m in members}
-        sequence = max((c.sequence for items in found.values() for c, _ in items), default=0)
-        common = common_sequence(found)
-        chosen = {}
-        if common is not None:
-            for m in members:
-                ckpt, slot = next(c for c in found[m.seed] if c[0].sequence == common)
-                if not loadable(ckpt, venv) or not stores[m.seed].complete(ckpt, slot):
-                    chosen = {}
-                    break
-                chosen[m.seed] = ckpt
-        if not chosen:
-            stores = {
-                m.seed: CheckpointStore(client, r.info.run_id, conf.train.signals, MemberCheckpoint)
-                for m, r in zip(members, runs, strict=True)
-            }
-        pending: dict[int, list] = {}
-        local = {
-            m.seed: load_local(folder, r.info.run_id, MemberCheckpoint)
-            for m, r in zip(members, runs, strict=True)
-        }
-        seqs = {item[0].sequence for item in local.values() if item is not None}
-        if (
-            None not in local.values()
-            and len(seqs) == 1
-            and all(loadable(item[0], venv) for item in local.values())
-        ):
-            if (newest := seqs.pop()) >= (common or 0):
-                log.info("continuing the population from its local checkpoints in %s",
-                         Path(folder).resolve())  # fmt: skip
-                chosen = {seed: item[0] for seed, item in local.items()}
-                pending = {seed: item[1] for seed, item in local.items()}
-                sequence = max(sequence, newest)
-        elif any(item is not None for item in local.values()):
-            log.warning("local checkpoints in %s do not cover the whole population; ignored",
-                        Path(folder).resolve())  # fmt: skip
-        if not chosen:
-            log.warning("population has no common usable checkpoint: training it from episode 0")
+        start = _restart_point(client, conf, members, runs, venv)
         for j, (m, r) in enumerate(zip(members, runs, strict=True)):
-            if chosen:
-                restore_member(chosen[m.seed], m, agent, venv, j)
-            reason = r.data.tags.get(Tag.FAILURE_REASON, "")
-            if r.info.status == "RUNNING":
-                log.warning("run %s is marked RUNNING (its process ended without closing it); "
-                            "continuing it", r.info.run_id)  # fmt: skip
-            m.recorder = Recorder.attach(uri, r.info.run_id)
-            tags = {
-                Tag.RESUMED_FROM_EPISODE: str(m.episode),
-                Tag.RESUME_COUNT: str(int(r.data.tags.get(Tag.RESUME_COUNT, "0")) + 1),
-                **process_tags(),
-            }
-            if reason:
-                tags[Tag.PREVIOUS_FAILURE_REASON] = reason
-                client.delete_tag(r.info.run_id, Tag.FAILURE_REASON)
-            m.recorder.set_tags(tags)
-            m.logged = m.recorder.logged_episodes()
-            m.recorder.add_pending(pending.get(m.seed, []))  # what the store did not take
+            if start.chosen:
+                restore_member(start.chosen[m.seed], m, agent, venv, j)
+            life.resume(m, client, r, start.stores[m.seed], start.pending.get(m.seed, []))
             log.info(
                 "resuming MLflow run %s (seed %d) at episode %d of %d",
                 r.info.run_id, m.seed, m.episode, conf.train.episodes,
@@ -503,11 +446,84 @@ def resume_population(uri: str, tracking: Any, runs: list, progress: bool) -> Po
         for env in venv.envs:
             env.close()
         raise
-    signum = train_members(
-        conf, agent, venv, members, results, progress, sequence, stores, box=setup.box()
-    )
+    signum = train_members(life, agent, venv, members, results, progress, start.sequence,
+                           box=setup.box())  # fmt: skip
     _forget_local(folder, [r.info.run_id for r in runs], results)
     return PopulationResult([results[s] for s in sorted(results)], signum)
+
+
+@dataclass
+class _RestartPoint:
+    """Where a resumed population starts: the checkpoint of each member (none: episode 0),
+    the stores to continue writing into, metrics a lost store did not take, and the number
+    of the newest checkpoint written so far."""
+
+    chosen: dict[int, MemberCheckpoint]
+    stores: dict[int, CheckpointStore]
+    pending: dict[int, list]
+    sequence: int
+
+
+def _restart_point(
+    client: MlflowClient, conf: Config, members: list[Member], runs: list, venv: VectorEnv
+) -> _RestartPoint:
+    """The newest checkpoint every member holds, in its run or in its local file
+    (:func:`resume_population`)."""
+
+    def stores() -> dict[int, CheckpointStore]:
+        return {
+            m.seed: CheckpointStore(client, r.info.run_id, conf.train.signals, MemberCheckpoint)
+            for m, r in zip(members, runs, strict=True)
+        }
+
+    point = _RestartPoint({}, stores(), {}, 0)
+    found = {m.seed: point.stores[m.seed].candidates() for m in members}
+    point.sequence = max((c.sequence for items in found.values() for c, _ in items), default=0)
+    common = common_sequence(found)
+    if common is not None:
+        for m in members:
+            ckpt, slot = next(c for c in found[m.seed] if c[0].sequence == common)
+            if not loadable(ckpt, venv) or not point.stores[m.seed].complete(ckpt, slot):
+                point.chosen = {}
+                break
+            point.chosen[m.seed] = ckpt
+    if not point.chosen:
+        point.stores = stores()
+    _local_restart_point(point, conf.tracking.local_checkpoints, members, runs, venv, common)
+    if not point.chosen:
+        log.warning("population has no common usable checkpoint: training it from episode 0")
+    return point
+
+
+def _local_restart_point(
+    point: _RestartPoint,
+    folder: str,
+    members: list[Member],
+    runs: list,
+    venv: VectorEnv,
+    common: int | None,
+) -> None:
+    """Take the members' local checkpoints (the store went away during the last attempt)
+    into ``point`` when they cover the whole population and are not older than ``common``."""
+    local = {
+        m.seed: load_local(folder, r.info.run_id, MemberCheckpoint)
+        for m, r in zip(members, runs, strict=True)
+    }
+    seqs = {item[0].sequence for item in local.values() if item is not None}
+    if (
+        None not in local.values()
+        and len(seqs) == 1
+        and all(loadable(item[0], venv) for item in local.values() if item is not None)
+    ):
+        if (newest := seqs.pop()) >= (common or 0):
+            log.info("continuing the population from its local checkpoints in %s",
+                     Path(folder).resolve())  # fmt: skip
+            point.chosen = {seed: item[0] for seed, item in local.items() if item is not None}
+            point.pending = {seed: item[1] for seed, item in local.items() if item is not None}
+            point.sequence = max(point.sequence, newest)
+    elif any(item is not None for item in local.values()):
+        log.warning("local checkpoints in %s do not cover the whole population; ignored",
+                    Path(folder).resolve())  # fmt: skip
 
 
 def _forget_local(folder: str, run_ids: list[str], results: dict) -> None:
@@ -518,22 +534,9 @@ def _forget_local(folder: str, run_ids: list[str], results: dict) -> None:
         shutil.rmtree(local_path(folder, run_id).parent, ignore_errors=True)
 
 
-def close_locally(m: Member, net: QNetwork | None, conf: Config, folder: str) -> Path:
-    """Keep what closing member ``m``'s run writes (status, metrics not yet written, signal
-    rows, model) in ``folder``, for a member that ended while the store was away."""
-    assert m.recorder is not None
-    rows = m.signals.n if conf.train.signals else 0
-    closing = MemberClosing(m.status, m.reason, [float(r) for r in m.returns], rows)
-    path = save_local(folder, m.recorder.run_id, closing, m.signals, m.recorder.pending,
-                      CLOSING_FILE)  # fmt: skip
-    if conf.tracking.log_model and net is not None:
-        save_network(net, path.parent / "model")
-    return path
-
-
 def close_from_local(uri: str, client: MlflowClient, run: Any, tracking: Any) -> RunResult | None:
-    """Close ``run`` from its local record (:func:`close_locally`), as the population would
-    have closed it; None when it has none."""
+    """Close ``run`` from its local record (:meth:`RunLifecycle.close_locally`), as the
+    population would have closed it; None when it has none."""
     folder = tracking.local_checkpoints
     run_id = run.info.run_id
     found = load_local(folder, run_id, MemberClosing, CLOSING_FILE)
@@ -543,21 +546,15 @@ def close_from_local(uri: str, client: MlflowClient, run: Any, tracking: Any) ->
     conf: Config = OmegaConf.to_object(stored_config(client, run_id, tracking))
     m = Member(conf.seed, OmegaConf.create(), status=closing.status, reason=closing.reason)
     m.returns = list(closing.returns)
+    m.episode = len(m.returns)
     if closing.signals is not None:
         m.signals.load(closing.signals)
-    m.recorder = Recorder.attach(uri, run_id)
-    m.recorder.set_tags(
-        {
-            Tag.RESUMED_FROM_EPISODE: str(len(m.returns)),
-            Tag.RESUME_COUNT: str(int(run.data.tags.get(Tag.RESUME_COUNT, "0")) + 1),
-            **process_tags(),
-        }
-    )
-    m.recorder.add_pending(pending)
+    life = RunLifecycle(conf, uri, MemberCheckpoint)
+    life.resume(m, client, run, None, pending, to_close=True)
     log.info("closing run %s (seed %d, %s while the store was away) from %s",
              run_id, m.seed, m.status, local_path(folder, run_id).parent)  # fmt: skip
     model = local_path(folder, run_id).parent / "model"
-    finish_member(m, None, conf, model if model.is_dir() else None)
+    life.close(m, None, model if model.is_dir() else None)
     return RunResult(run_id, m.status, m.score, m.reason, returns=list(m.returns),
                      steps=m.signals.n, solve_threshold=conf.env.solve_threshold)  # fmt: skip
 
@@ -570,77 +567,15 @@ def start_member_run(
     population: str,
     population_id: str | None = None,
 ) -> Recorder:
-    """Open member ``m``'s MLflow run with the params, tags and artifacts of a single run;
-    tag ``population_id`` names the population (what ``resume=`` finds its members by)."""
-    container = OmegaConf.to_container(m.cfg, resolve=True)
-    tags = {
-        Tag.ENV: conf.env.name,
-        Tag.ENV_ID: conf.env.id,
-        Tag.CONTROLLER: conf.controller.name,
-        Tag.SEED: str(m.seed),
-        Tag.GIT_COMMIT: git_commit(),
-        Tag.DESIGN_SOURCE: setup.source,
-        Tag.CONFIG_HASH: config_hash(m.cfg),
-        Tag.POPULATION: population,
-        Tag.POPULATION_ID: population_id or uuid.uuid4().hex,
-        **process_tags(),
-        **setup.tags(),
-    }
-    rec = Recorder.start(
-        uri,
-        conf.tracking.experiment,
-        run_name(conf, m.seed),
-        flatten(container),
-        tags,
-        config=container,
-    )
-    if setup.design:
-        rec.log_dict(setup.design, Artifact.DESIGN_RECORD)
-    if setup.artifacts is not None:
-        rec.log_dir(setup.artifacts, folder(Artifact.DESIGN))
-    log.debug(
-        "MLflow run %s (%s, %s, seed %d)", rec.run_id, conf.env.name, conf.controller.name, m.seed
-    )
-    return rec
+    """Open member ``m``'s MLflow run (:meth:`RunLifecycle.open`), tagged ``population``
+    and ``population_id`` (what ``resume=`` finds its members by); its recorder."""
+    tags = {Tag.POPULATION: population, Tag.POPULATION_ID: population_id or uuid.uuid4().hex}
+    RunLifecycle(conf, uri, MemberCheckpoint).open(m, setup, tags)
+    assert m.recorder is not None
+    return m.recorder
 
 
-def finish_member(
-    m: Member,
-    net: QNetwork | None,
-    conf: Config,
-    model: Path | None = None,
-    box: Box | None = None,
-) -> None:
-    """Signals, model (of ``net``, or the saved one in folder ``model``) and status of
-    member ``m``'s run, as a single run writes them (``box``: the design's NTK box, drawn
-    with the signal series).  A store that went away (:class:`TrackingOutage`) leaves the
-    run open."""
-    rec = m.recorder
-    assert rec is not None
-    try:
-        if conf.train.signals:
-            final = closes_for_good(m.status, m.reason)
-            rec.log_signals(m.signals, conf.train.lr, box, final)
-        if conf.tracking.log_model and net is not None:
-            with tempfile.TemporaryDirectory() as tmp:
-                save_network(net, Path(tmp))
-                rec.log_dir(Path(tmp), folder(Artifact.MODEL))
-        elif conf.tracking.log_model and model is not None:
-            rec.log_dir(model, folder(Artifact.MODEL))
-        if m.status == "FINISHED" and not conf.train.keep_checkpoints:
-            rec.delete_artifacts(CHECKPOINT_ROOT)  # nothing left to resume
-    except TrackingOutage:
-        raise
-    except BaseException:
-        _close(m)
-        raise
-    _close(m)
-
-
-def _close(m: Member) -> None:
-    rec = m.recorder
-    assert rec is not None
-    status = m.status if m.status != "RUNNING" else "KILLED"
-    rec.finish(status, m.reason, m.score)
-    if status != "FINISHED":
-        log.warning("run %s %s: %s", rec.run_id, status, m.reason)
+def finish_member(m: Member, net: QNetwork | None, conf: Config) -> None:
+    """Close member ``m``'s run (:meth:`RunLifecycle.close`)."""
+    assert m.recorder is not None
+    RunLifecycle(conf, m.recorder.uri, MemberCheckpoint).close(m, net)

@@ -53,6 +53,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from cdqn.config import Config, ConfigError
 from cdqn.records import Tag
+from cdqn.training.divergence import is_divergence
 from cdqn.training.signals import COLUMNS
 from cdqn.training.tracking import CONFIG_ARTIFACT
 
@@ -213,7 +214,7 @@ def population_runs(client: MlflowClient, run: Run) -> list[Run]:
         if r.info.status in ("KILLED", "RUNNING")
         or (
             r.info.status == "FAILED"
-            and not r.data.tags.get(Tag.FAILURE_REASON, "").startswith("diverged")
+            and not is_divergence(r.info.status, r.data.tags.get(Tag.FAILURE_REASON))
         )
     ]
     return sorted(keep, key=lambda r: int(r.data.tags.get(Tag.SEED, "0")))

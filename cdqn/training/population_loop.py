@@ -30,7 +30,6 @@ of two schedules, by what the environments allow (:mod:`cdqn.vector_env`):
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -44,12 +43,20 @@ from cdqn.agents.episodic_replay import PopulationTail, Transitions, qualifies
 from cdqn.config import ReplayConfig
 from cdqn.control.box import Box
 from cdqn.records import column
-from cdqn.training.loop import DivergenceError, _diagnose, episode_stats
+from cdqn.training.divergence import (
+    DivergenceError,
+    check_controller,
+    check_step,
+    failure_reason,
+    replay_failed,
+)
+from cdqn.training.loop import episode_stats
 from cdqn.training.population_step import CHECK, DONE, ControlledPopulation
 from cdqn.training.signals import COLUMNS, SignalBuffer
 from cdqn.vector_env import VectorEnv
 
-if TYPE_CHECKING:  # a member's recorder is opened by the population's runs, not by the loop
+if TYPE_CHECKING:  # a member's run is opened by its lifecycle, not by the loop
+    from cdqn.training.checkpoint import CheckpointStore
     from cdqn.training.tracking import Recorder
 
 _RECORD = tuple(column(c) for c in StepRecord._fields)
@@ -63,6 +70,9 @@ class Member:
     seed: int
     cfg: DictConfig
     recorder: Recorder | None = None
+    """Writes the member's MLflow run (:mod:`cdqn.training.lifecycle`)."""
+    store: CheckpointStore | None = None
+    """The checkpoints of the member's run."""
     signals: SignalBuffer = field(default_factory=SignalBuffer)
     returns: list[float] = field(default_factory=list)
     episode: int = 0
@@ -211,165 +221,222 @@ def train_population(
     """The training loop of :func:`cdqn.training.loop.train` for all members at once.
 
     Each member's environment is seeded with its seed at its first episode.  A member that
-    finishes its ``episodes`` or diverges leaves the batch (``on_member_end`` is called with
-    the member, the agent and its row, before the row is dropped).  ``max_steps`` (for the
-    benchmark) ends the loop after that many population steps.  ``replay``: episodic replay
-    after each member's qualifying episode, as :func:`cdqn.training.loop.train` does it;
-    ``box``: the design's NTK box, for ``theta1_outside_box``, ``ratio_below_box``
-    and ``ratio_above_box``.
+    finishes its ``episodes`` or diverges (:mod:`cdqn.training.divergence`) leaves the batch
+    (``on_member_end`` is called with the member, the agent and its row, before the row is
+    dropped).  ``max_steps`` (for the benchmark) ends the loop after that many population
+    steps.  ``replay``: episodic replay after each member's qualifying episode, as
+    :func:`cdqn.training.loop.train` does it; ``box``: the design's NTK box, for
+    ``theta1_outside_box``, ``ratio_below_box`` and ``ratio_above_box``.
 
     ``checkpoints``: when and how members are captured and written (module docstring);
     with every member's signal rows flushed.  A member with a ``carry`` continues from it
     instead of starting with a reset; one without starts its next episode with a reset,
     seeded with its seed at its first episode.
     """
-    members = list(members)
-    first = [
-        venv.reset(j, m.seed if m.episode == 0 else None) if m.carry is None else m.carry["obs"]
-        for j, m in enumerate(members)
-    ]
-    obs = np.stack(first)
-    for j, m in enumerate(members):
-        if m.carry is None:
-            agent.start_episode(j)
-    t = np.array([m.carry["t"] if m.carry else 0 for m in members], dtype=np.int64)
-    ret = np.array([m.carry["ret"] if m.carry else 0.0 for m in members])
-    schedule = _Schedule(checkpoints, members)
-    ep = np.array([m.episode for m in members], dtype=float)
-    staging = _Staging(len(members))
-    tail = None
-    if replay is not None and replay.repeats > 0:
-        cap = replay.last or getattr(venv.envs[0].spec, "max_episode_steps", None) or 10_000
-        tail = PopulationTail(len(members), obs.shape[1], cap)
-        for j, m in enumerate(members):
-            if m.carry is not None and m.carry.get("replay_tail") is not None:
-                tail.restore(j, Transitions(**m.carry["replay_tail"]))
-
-    def capture_now(items: list[tuple[int, Member]]) -> list[tuple[Member, Any]]:
-        """``items`` captured between two steps (signal rows flushed, each member's
-        transitions of the episode in progress attached)."""
-        assert checkpoints is not None
-        staging.flush_all(members)
-        for j, m in items:
-            if tail is not None:
-                m.replay_tail = tail.transitions(j, min(int(t[j]), replay.last or int(t[j])))
-        return [(m, checkpoints.capture(j, m, obs, t, ret)) for j, m in items]
-
-    def capture_all() -> list[tuple[Member, Any]]:
-        return capture_now(list(enumerate(members)))
-
+    ends = _Ends(episodes, discount, q_limit, box, on_episode)
+    batch = _Batch(agent, venv, list(members), checkpoints, replay)
     bar = tqdm(total=episodes * len(members), disable=not progress, unit="ep", leave=True)
     steps = 0
     try:
-        while members:
-            actions = agent.act(obs)
-            out = venv.step(actions)
-            rows = staging.next_block(members)
-            flagged = agent.update(actions, out, ep, t, ret, rows, q_limit)
-            if tail is not None:
-                tail.append(obs, actions, out.reward, out.obs, out.terminated)
-            obs = out.obs
-            leaving: list[int] = []
-            if flagged:
-                flags = agent.flags
-                for j in np.flatnonzero(flags == CHECK):  # the trainer's exact test
-                    row = rows[j].tolist()
-                    r = StepRecord(*(row[i] for i in _RECORD))
-                    if (
-                        abs(r.q1) <= q_limit
-                        and abs(r.q2) <= q_limit
-                        and math.isfinite(r.u + r.x_e)
-                        and (
-                            math.isfinite(r.loss) or (not agent.loss_seen[j] and math.isnan(r.loss))
-                        )
-                    ):
-                        agent.loss_seen[j] |= not math.isnan(r.loss)
-                        flags[j] = DONE if out.terminated[j] or out.truncated[j] else 0
-                        continue
-                    try:
-                        _diagnose(r, q_limit, members[j].episode, int(t[j] - 1))
-                    except DivergenceError as err:
-                        members[j].status, members[j].reason = "FAILED", f"diverged: {err}"
-                    leaving.append(j)
-                for j in np.flatnonzero(flags == DONE):
-                    m = members[j]
-                    staging.flush(j, m)
-                    replayed = 0
-                    end = (bool(out.terminated[j]), bool(out.truncated[j]), float(ret[j]))
-                    if tail is not None and qualifies(replay, *end):
-                        steps_j = min(int(t[j]), replay.last or int(t[j]))
-                        replayed = agent.replay(
-                            j,
-                            tail.transitions(j, steps_j),
-                            replay.repeats,
-                            q_limit,
-                        )
-                        if replayed < 0:
-                            err = DivergenceError(
-                                f"update {-replayed - 1} of episodic replay failed the divergence "
-                                "test",
-                                m.episode,
-                                int(t[j] - 1),
-                            )
-                            m.status, m.reason = "FAILED", f"diverged: {err}"
-                            leaving.append(j)
-                            continue
-                    x_c = agent.controller.state(j)
-                    if x_c is not None and not np.all(np.isfinite(x_c)):
-                        err = DivergenceError(
-                            f"non-finite controller state x_c = {x_c}", m.episode, int(t[j] - 1)
-                        )
-                        m.status, m.reason = "FAILED", f"diverged: {err}"
-                        leaving.append(j)
-                        continue
-                    m.returns.append(float(ret[j]))
-                    start = m.signals.n - int(t[j])
-                    stats = episode_stats(
-                        m.episode, m.signals.rows(start), m.returns, discount, replayed, box
-                    )
-                    m.episode += 1
-                    if on_episode is not None:
-                        on_episode(m, stats)
-                    bar.update(1)
-                    if m.episode >= episodes:
-                        m.status = "FINISHED"
-                        leaving.append(j)
-                        continue
-                    if schedule.boundary(j, m, obs, t, ret):
-                        leaving.append(j)
-                        continue
-                    obs[j] = venv.reset(j, None)
-                    agent.start_episode(j)
-                    t[j], ret[j], ep[j] = 0, 0.0, m.episode
+        while batch.members:
+            leaving = batch.step(ends, bar)
             steps += 1
-            stop = not schedule.draining and should_stop is not None and should_stop()
-            if stop and schedule.drain():  # each member leaves at the end of its episode
+            stop = not batch.schedule.draining and should_stop is not None and should_stop()
+            if stop and batch.schedule.drain():  # each member leaves at the end of its episode
                 stop = False
             if stop or (max_steps is not None and steps >= max_steps):
-                gone = set(leaving)
-                survivors = [(j, m) for j, m in enumerate(members) if j not in gone]
-                if stop and checkpoints is not None and survivors:
-                    checkpoints.write(capture_now(survivors), True)
-                for m in members:
-                    if m.status == "RUNNING":
-                        m.status = "KILLED"
-                leaving = list(range(len(members)))
-            if leaving:
-                staging.flush_all(members)
-                for j in sorted(set(leaving)):
-                    if on_member_end is not None:
-                        on_member_end(members[j], agent, j)
-                keep = np.array([j for j in range(len(members)) if j not in set(leaving)])
-                members = [members[j] for j in keep]
-                if not members:
-                    break
-                agent.select(keep)
-                venv.select(keep)
-                if tail is not None:
-                    tail.select(keep)
-                staging.select(keep, members)
-                obs, t, ret, ep = obs[keep], t[keep], ret[keep], ep[keep]
-            if schedule.every:
-                schedule.periodic(members, capture_all)
+                leaving = batch.stop(leaving, write=stop)
+            if leaving and not batch.leave(leaving, on_member_end):
+                break
+            if batch.schedule.every:
+                batch.schedule.periodic(batch.members, batch.capture_all)
     finally:
         bar.close()
+
+
+@dataclass
+class _Ends:
+    """What the loop does when a member's episode ends: the run's settings."""
+
+    episodes: int
+    discount: float
+    q_limit: float
+    box: Box | None
+    on_episode: Callable[[Member, object], None] | None
+
+
+class _Batch:
+    """The members still training and the loop's per-member arrays, row ``j`` for
+    ``members[j]``: observation, step within the episode, return so far, episode index."""
+
+    def __init__(
+        self,
+        agent: ControlledPopulation,
+        venv: VectorEnv,
+        members: list[Member],
+        checkpoints: Checkpoints | None,
+        replay: ReplayConfig | None,
+    ) -> None:
+        self.agent, self.venv, self.members = agent, venv, members
+        self.checkpoints, self.replay = checkpoints, replay
+        first = [
+            venv.reset(j, m.seed if m.episode == 0 else None) if m.carry is None else m.carry["obs"]
+            for j, m in enumerate(members)
+        ]
+        self.obs = np.stack(first)
+        for j, m in enumerate(members):
+            if m.carry is None:
+                agent.start_episode(j)
+        self.t = np.array([m.carry["t"] if m.carry else 0 for m in members], dtype=np.int64)
+        self.ret = np.array([m.carry["ret"] if m.carry else 0.0 for m in members])
+        self.schedule = _Schedule(checkpoints, members)
+        self.ep = np.array([m.episode for m in members], dtype=float)
+        self.staging = _Staging(len(members))
+        self.tail = self._tail() if replay is not None and replay.repeats > 0 else None
+
+    def _tail(self) -> PopulationTail:
+        """The transitions of each member's episode in progress (episodic replay)."""
+        assert self.replay is not None
+        spec = getattr(self.venv.envs[0].spec, "max_episode_steps", None)
+        tail = PopulationTail(
+            len(self.members), self.obs.shape[1], self.replay.last or spec or 10_000
+        )
+        for j, m in enumerate(self.members):
+            if m.carry is not None and m.carry.get("replay_tail") is not None:
+                tail.restore(j, Transitions(**m.carry["replay_tail"]))
+        return tail
+
+    def _replay_steps(self, j: int) -> int:
+        """Transitions of member ``j``'s episode that episodic replay uses."""
+        assert self.replay is not None
+        return min(int(self.t[j]), self.replay.last or int(self.t[j]))
+
+    def capture_now(self, items: list[tuple[int, Member]]) -> list[tuple[Member, Any]]:
+        """``items`` captured between two steps (signal rows flushed, each member's
+        transitions of the episode in progress attached)."""
+        assert self.checkpoints is not None
+        self.staging.flush_all(self.members)
+        for j, m in items:
+            if self.tail is not None:
+                m.replay_tail = self.tail.transitions(j, self._replay_steps(j))
+        return [(m, self.checkpoints.capture(j, m, self.obs, self.t, self.ret)) for j, m in items]
+
+    def capture_all(self) -> list[tuple[Member, Any]]:
+        return self.capture_now(list(enumerate(self.members)))
+
+    def step(self, ends: _Ends, bar: tqdm) -> list[int]:
+        """One population step; the rows of the members that leave the batch."""
+        agent = self.agent
+        actions = agent.act(self.obs)
+        out = self.venv.step(actions)
+        rows = self.staging.next_block(self.members)
+        flagged = agent.update(actions, out, self.ep, self.t, self.ret, rows, ends.q_limit)
+        if self.tail is not None:
+            self.tail.append(self.obs, actions, out.reward, out.obs, out.terminated)
+        self.obs = out.obs
+        leaving: list[int] = []
+        if flagged:
+            flags = agent.flags
+            for j in np.flatnonzero(flags == CHECK):  # the single run's exact test
+                if self._checked(j, rows[j], ends.q_limit):
+                    flags[j] = DONE if out.terminated[j] or out.truncated[j] else 0
+                else:
+                    leaving.append(j)
+            for j in np.flatnonzero(flags == DONE):
+                end = (bool(out.terminated[j]), bool(out.truncated[j]), float(self.ret[j]))
+                if self._episode_end(j, end, ends, bar):
+                    leaving.append(j)
+        return leaving
+
+    def _checked(self, j: int, row: np.ndarray, q_limit: float) -> bool:
+        """The divergence check of member ``j``'s step (flagged by the kernel's cheap test);
+        False when it diverged (closed FAILED)."""
+        values = row.tolist()
+        rec = StepRecord(*(values[i] for i in _RECORD))
+        m, loss_seen = self.members[j], self.agent.loss_seen
+        try:
+            loss_seen[j] = check_step(
+                rec, q_limit, bool(loss_seen[j]), m.episode, int(self.t[j] - 1)
+            )
+        except DivergenceError as err:
+            m.status, m.reason = "FAILED", failure_reason(err)
+            return False
+        return True
+
+    def _episode_end(self, j: int, end: tuple[bool, bool, float], ends: _Ends, bar: tqdm) -> bool:
+        """Member ``j``'s episode ended (``end``: terminated, truncated, return): replay,
+        check, record, then reset or leave; True when it leaves the batch."""
+        m, t = self.members[j], self.t
+        self.staging.flush(j, m)
+        try:
+            replayed = self._replayed(j, end, ends.q_limit)
+            check_controller(self.agent.controller.state(j), m.episode, int(t[j] - 1))
+        except DivergenceError as err:
+            m.status, m.reason = "FAILED", failure_reason(err)
+            return True
+        m.returns.append(float(self.ret[j]))
+        start = m.signals.n - int(t[j])
+        stats = episode_stats(m.episode, m.signals.rows(start), m.returns, ends.discount,
+                              replayed, ends.box)  # fmt: skip
+        m.episode += 1
+        if ends.on_episode is not None:
+            ends.on_episode(m, stats)
+        bar.update(1)
+        if m.episode >= ends.episodes:
+            m.status = "FINISHED"
+            return True
+        if self.schedule.boundary(j, m, self.obs, t, self.ret):
+            return True
+        self.obs[j] = self.venv.reset(j, None)
+        self.agent.start_episode(j)
+        t[j], self.ret[j], self.ep[j] = 0, 0.0, m.episode
+        return False
+
+    def _replayed(self, j: int, end: tuple[bool, bool, float], q_limit: float) -> int:
+        """Episodic replay of member ``j``'s episode if it qualifies; the updates made."""
+        if self.tail is None or self.replay is None or not qualifies(self.replay, *end):
+            return 0
+        steps = self._replay_steps(j)
+        replayed = self.agent.replay(j, self.tail.transitions(j, steps), self.replay.repeats,
+                                     q_limit)  # fmt: skip
+        if replayed < 0:
+            raise replay_failed(-replayed - 1, self.members[j].episode, int(self.t[j] - 1))
+        return replayed
+
+    def stop(self, leaving: list[int], write: bool) -> list[int]:
+        """Every member leaves now (KILLED unless it ended in this step); with ``write``,
+        those still training are checkpointed first.  The rows that leave: all."""
+        gone = set(leaving)
+        survivors = [(j, m) for j, m in enumerate(self.members) if j not in gone]
+        if write and self.checkpoints is not None and survivors:
+            self.checkpoints.write(self.capture_now(survivors), True)
+        for m in self.members:
+            if m.status == "RUNNING":
+                m.status = "KILLED"
+        return list(range(len(self.members)))
+
+    def leave(
+        self,
+        leaving: list[int],
+        on_member_end: Callable[[Member, ControlledPopulation, int], None] | None,
+    ) -> bool:
+        """Drop the rows ``leaving`` from the batch (``on_member_end`` first); False when no
+        member is left."""
+        self.staging.flush_all(self.members)
+        gone = set(leaving)
+        for j in sorted(gone):
+            if on_member_end is not None:
+                on_member_end(self.members[j], self.agent, j)
+        keep = np.array([j for j in range(len(self.members)) if j not in gone])
+        self.members = [self.members[j] for j in keep]
+        if not self.members:
+            return False
+        self.agent.select(keep)
+        self.venv.select(keep)
+        if self.tail is not None:
+            self.tail.select(keep)
+        self.staging.select(keep, self.members)
+        self.obs, self.t, self.ret, self.ep = (
+            self.obs[keep], self.t[keep], self.ret[keep], self.ep[keep]
+        )  # fmt: skip
+        return True

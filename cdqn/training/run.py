@@ -23,6 +23,7 @@ from cdqn.envs import Adopted, adopt, make_env
 from cdqn.records import Tag
 from cdqn.training.batching import batchable
 from cdqn.training.build import member_config, member_seeds
+from cdqn.training.divergence import is_divergence
 from cdqn.training.population import resume_population, start_population
 from cdqn.training.population_checkpoint import population_runs
 from cdqn.training.population_loop import Member
@@ -129,7 +130,7 @@ def resume(cfg: DictConfig, progress: bool = True) -> RunResult:
     status, reason = info.info.status, info.data.tags.get(Tag.FAILURE_REASON, "")
     if status == "FINISHED":
         raise ConfigError(f"resume={run_id}: the run FINISHED; there is nothing to continue")
-    if status == "FAILED" and reason.startswith("diverged"):
+    if is_divergence(status, reason):
         raise ConfigError(
             f"resume={run_id}: the run FAILED because it {reason}; with the same seed it would "
             "diverge again (start a new run with other settings)"

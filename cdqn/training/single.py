@@ -1,8 +1,10 @@
 """A single run: train one configuration and seed as one MLflow run, with checkpoints,
 divergence and signal handling, and a tracking store that may go away.
 
-The run is built (:mod:`cdqn.training.build`), trained by :func:`cdqn.training.loop.train`,
-recorded by :class:`cdqn.training.tracking.Recorder` and checkpointed into its own run
+A single run is a population of one in its lifecycle (:mod:`cdqn.training.lifecycle`): one
+:class:`~cdqn.training.population_loop.Member`, opened, recorded, checkpointed, closed and
+resumed as a population's members are.  It is built (:mod:`cdqn.training.build`), trained
+by :func:`cdqn.training.loop.train` and checkpointed into its own run
 (:mod:`cdqn.training.checkpoint`) every ``train.checkpoint_every`` episodes and when
 SIGINT/SIGTERM stops it.  Whatever happens, the signals so far, the network and the status
 (FINISHED, FAILED with ``failure_reason``, KILLED) are written before returning or raising;
@@ -14,45 +16,26 @@ from __future__ import annotations
 
 import logging
 import math
-import tempfile
 import time
-from pathlib import Path
-from urllib.parse import urlsplit
+from dataclasses import dataclass
 
 import gymnasium as gym
-import numpy as np
 from mlflow.entities import Run
 from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
 
 from cdqn.config import Config, validate
 from cdqn.envs import make_env
-from cdqn.network import save_network
-from cdqn.records import Artifact, Tag, folder
 from cdqn.training.build import Job, build
-from cdqn.training.checkpoint import ROOT as CHECKPOINT_ROOT
-from cdqn.training.checkpoint import (
-    CheckpointStore,
-    capture,
-    load_local,
-    local_path,
-    restore,
-    save_local,
-)
+from cdqn.training.checkpoint import CheckpointStore, capture, load_local, local_path, restore
+from cdqn.training.divergence import DivergenceError, failure_reason
 from cdqn.training.interrupt import GracefulStop
-from cdqn.training.loop import DivergenceError, EpisodeStats, TrainState, train
+from cdqn.training.lifecycle import RunLifecycle
+from cdqn.training.loop import EpisodeStats, TrainState, train
 from cdqn.training.population_checkpoint import stored_config
+from cdqn.training.population_loop import Member
 from cdqn.training.result import OUTAGE, RunResult
-from cdqn.training.signals import SignalBuffer
-from cdqn.training.sweep import config_hash, process_tags, run_name
-from cdqn.training.tracking import (
-    Recorder,
-    TrackingOutage,
-    closes_for_good,
-    fail_fast_http,
-    flatten,
-    git_commit,
-)
+from cdqn.training.tracking import TrackingOutage
 
 log = logging.getLogger("cdqn")
 
@@ -60,50 +43,17 @@ log = logging.getLogger("cdqn")
 def start_run(cfg: DictConfig, conf: Config, env: gym.Env, uri: str, progress: bool) -> RunResult:
     """Train ``conf`` (``cfg`` resolved and validated) on ``env`` as a new MLflow run in the
     store at ``uri`` (already checked); closes ``env``."""
+    life, m = RunLifecycle(conf, uri), Member(conf.seed, cfg)
     try:
         job = build(conf, env)
+        life.open(m, job.setup)
     except BaseException:
         env.close()
         raise
-
-    container = OmegaConf.to_container(cfg, resolve=True)
-    params = flatten(container)
-    tags = {
-        Tag.ENV: conf.env.name,
-        Tag.ENV_ID: conf.env.id,
-        Tag.CONTROLLER: conf.controller.name,
-        Tag.SEED: str(conf.seed),
-        Tag.GIT_COMMIT: git_commit(),
-        Tag.DESIGN_SOURCE: job.setup.source,
-        Tag.CONFIG_HASH: config_hash(cfg),
-        **process_tags(),
-        **job.setup.tags(),
-    }
-    try:
-        recorder = Recorder.start(
-            uri,
-            conf.tracking.experiment,
-            run_name(conf),
-            params,
-            tags,
-            config=container,
-        )
-    except BaseException:
-        env.close()
-        raise
-    if job.setup.design:
-        recorder.log_dict(job.setup.design, Artifact.DESIGN_RECORD)
-    if job.setup.artifacts is not None:
-        recorder.log_dir(job.setup.artifacts, folder(Artifact.DESIGN))
-    log.info(
-        "MLflow run %s (%s, %s, seed %d)",
-        recorder.run_id,
-        conf.env.name,
-        conf.controller.name,
-        conf.seed,
-    )
-    store = CheckpointStore(recorder.client, recorder.run_id, conf.train.signals)
-    return _train(job, recorder, store, TrainState(), SignalBuffer(), progress, set())
+    assert m.recorder is not None
+    log.info("MLflow run %s (%s, %s, seed %d)",
+             m.recorder.run_id, conf.env.name, conf.controller.name, conf.seed)  # fmt: skip
+    return _train(job, life, m, TrainState(), progress)
 
 
 def resume_run(
@@ -111,19 +61,12 @@ def resume_run(
 ) -> RunResult:
     """Continue the single run ``info`` (KILLED, RUNNING or FAILED for a reason other than
     divergence) in the same MLflow run, from its last checkpoint, or from its local one
-    when that is newer (written when the store went away, :func:`_stop_locally`).
+    when that is newer (written when the store went away, :meth:`_SingleRun.stop_locally`).
 
     The run's stored ``config.yaml`` is what runs; ``cfg`` only says where the store is
     (``tracking.*``).  Episodes whose metrics are already in the store are not logged twice.
     """
     run_id = info.info.run_id
-    status, reason = info.info.status, info.data.tags.get(Tag.FAILURE_REASON, "")
-    if status == "RUNNING":
-        log.warning(
-            "run %s is marked RUNNING (its process ended without closing it, e.g. SIGKILL); "
-            "continuing it. Stop any process still training it first.",
-            run_id,
-        )
     stored = stored_config(client, run_id, cfg.tracking)
     conf: Config = OmegaConf.to_object(stored)
     validate(conf)
@@ -141,189 +84,158 @@ def resume_run(
         ckpt, pending = local
         log.info("continuing from the local checkpoint %s",
                  local_path(conf.tracking.local_checkpoints, run_id))  # fmt: skip
-    state, signals = TrainState(), SignalBuffer()
+    state, m = TrainState(), Member(conf.seed, stored)
     if ckpt is None:
         log.warning("run %s has no usable checkpoint: training it again from episode 0", run_id)
     else:
-        restore(ckpt, job.agent, env, state, job.rng, signals)
+        restore(ckpt, job.agent, env, state, job.rng, m.signals)
+    m.episode = state.episode
     log.info(
         "resuming MLflow run %s at episode %d of %d", run_id, state.episode, conf.train.episodes
     )
-    recorder = Recorder.attach(uri, run_id)
-    recorder.set_tags(
-        {
-            Tag.RESUMED_FROM_EPISODE: str(state.episode),
-            Tag.RESUME_COUNT: str(int(info.data.tags.get(Tag.RESUME_COUNT, "0")) + 1),
-            **process_tags(),
-        }
-    )
-    if reason:
-        recorder.set_tags({Tag.PREVIOUS_FAILURE_REASON: reason})
-        client.delete_tag(run_id, Tag.FAILURE_REASON)
-    logged = recorder.logged_episodes()
-    recorder.add_pending(pending)  # metrics the store did not take before it went away
-    result = _train(job, recorder, store, state, signals, progress, logged)
+    life = RunLifecycle(conf, uri)
+    life.resume(m, client, info, store, pending)
+    result = _train(job, life, m, state, progress)
     if local is not None and result.status != OUTAGE:
         local_path(conf.tracking.local_checkpoints, run_id).unlink(missing_ok=True)
     return result
 
 
-def _train(
-    job: Job,
-    recorder: Recorder,
-    store: CheckpointStore,
-    state: TrainState,
-    signals: SignalBuffer,
-    progress: bool,
-    logged: set[int],
-) -> RunResult:
-    """The training loop with checkpoints, divergence and signal handling; closes the run.
+def _train(job: Job, life: RunLifecycle, m: Member, state: TrainState, progress: bool) -> RunResult:
+    """The training loop of member ``m`` (its run open) with checkpoints, divergence and
+    signal handling; closes the run.
 
     Whatever happens, the signals so far, the network and the status (FINISHED, FAILED with
     ``failure_reason``, KILLED) are written before returning or raising.
     """
     conf = job.conf
-    episodes, every = conf.train.episodes, conf.train.checkpoint_every
-    last_checkpoint = state.episode
+    m.returns, m.checkpointed = state.returns, state.episode
     start_steps, t0 = state.total_steps, time.perf_counter()
-
-    def checkpoint(st: TrainState) -> None:
-        nonlocal last_checkpoint
-        recorder.flush()
-        rows = signals.n if conf.train.signals else 0
-        store.save(capture(job.agent, job.env, st, job.rng, rows), signals)
-        last_checkpoint = st.episode
-
-    def on_episode(stats: EpisodeStats, st: TrainState) -> None:
-        if stats.episode not in logged:
-            recorder.log_episode(stats)
-        if every and st.episode % every == 0 and st.episode < episodes:
-            checkpoint(st)
-
-    status, reason = "FINISHED", None
+    life.watch(m)
+    run = _SingleRun(job, life, m, state, GracefulStop())
     outage: TrackingOutage | None = None
-    store.retry_s = recorder.retry_s = conf.tracking.retry_s
-    if urlsplit(recorder.uri).scheme in ("http", "https"):
-        fail_fast_http(conf.tracking.timeout)
-    stop = GracefulStop()
-    with stop:
+    with run.stop:
         try:
-            train(
-                job.env,
-                job.agent,
-                episodes=episodes,
-                seed=conf.seed,
-                discount=conf.train.discount,
-                q_limit=conf.train.q_limit,
-                signals=signals,
-                state=state,
-                on_episode=on_episode,
-                progress=progress and conf.train.progress,
-                desc=f"{conf.env.name}/{conf.controller.name}/s{conf.seed}",
-                should_stop=stop.requested,
-                replay=conf.weights.replay if conf.controller.name != "ddqn" else None,
-                box=job.setup.box(),
-            )
-            if state.episode < episodes:  # a signal stopped training at an episode boundary
-                status = "KILLED"
-                if last_checkpoint != state.episode:
-                    checkpoint(state)
-                reason = (
-                    f"{stop.name} after episode {state.episode} of {episodes}; checkpoint "
-                    f"written, continue with resume={recorder.run_id}"
-                )
+            run.train(progress)
         except DivergenceError as err:
-            status, reason = "FAILED", f"diverged: {err}"
+            m.status, m.reason = "FAILED", failure_reason(err)
         except KeyboardInterrupt:
-            status = "KILLED"
-            reason = (
-                f"stopped during episode {state.episode} of {episodes}; the last checkpoint "
-                f"is at episode {last_checkpoint}, continue with resume={recorder.run_id}"
-            )
+            m.status, m.reason = "KILLED", run.interrupted()
             raise
         except TrackingOutage as err:  # at an episode boundary: checkpoint locally below
             outage = err
         except Exception as err:
-            status, reason = "FAILED", f"{type(err).__name__}: {err}"
+            m.status, m.reason = "FAILED", f"{type(err).__name__}: {err}"
             raise
         finally:
-            stop.closing()
+            run.stop.closing()
             seconds = time.perf_counter() - t0
-            score = float(np.mean(state.returns[-100:])) if state.returns else float("nan")
-            try:
-                if outage is None:
-                    outage = _close_run(job, recorder, signals, status, reason, score)
-            finally:
-                job.env.close()
-                if outage is not None:
-                    status, reason = OUTAGE, _stop_locally(job, recorder, state, signals, outage)
-                elif status != "FINISHED":
-                    log.warning("run %s %s: %s", recorder.run_id, status, reason)
+            run.close(outage)
+    assert m.recorder is not None
     return RunResult(
-        recorder.run_id,
-        status,
-        score,
-        reason,
-        stop.signum,
-        returns=list(state.returns),
-        steps=state.total_steps,
-        seconds=seconds,
+        m.recorder.run_id, m.status, m.score, m.reason, run.stop.signum,
+        returns=list(state.returns), steps=state.total_steps, seconds=seconds,
         rate=(state.total_steps - start_steps) / seconds if seconds > 0 else math.nan,
-        steps_before=start_steps,
-        epsilon=float(job.agent.epsilon),
+        steps_before=start_steps, epsilon=float(job.agent.epsilon),
         solve_threshold=conf.env.solve_threshold,
-    )
+    )  # fmt: skip
 
 
-def _close_run(
-    job: Job,
-    recorder: Recorder,
-    signals: SignalBuffer,
-    status: str,
-    reason: str | None,
-    score: float,
-) -> TrackingOutage | None:
-    """Signals, model, final score and status of the run (a FINISHED run's checkpoints are
-    deleted unless ``train.keep_checkpoints``); the outage if the store stopped answering."""
-    conf = job.conf
-    try:
+@dataclass
+class _SingleRun:
+    """What the training of one single run holds: its job, its member in the lifecycle,
+    the loop's state and the signal handler."""
+
+    job: Job
+    life: RunLifecycle
+    m: Member
+    state: TrainState
+    stop: GracefulStop
+
+    def train(self, progress: bool) -> None:
+        """Train to ``train.episodes``, or to the episode boundary where a signal stops it
+        (KILLED, checkpoint written)."""
+        job, conf, state = self.job, self.job.conf, self.state
+        episodes = conf.train.episodes
+        train(
+            job.env,
+            job.agent,
+            episodes=episodes,
+            seed=conf.seed,
+            discount=conf.train.discount,
+            q_limit=conf.train.q_limit,
+            signals=self.m.signals,
+            state=state,
+            on_episode=self.on_episode,
+            progress=progress and conf.train.progress,
+            desc=f"{conf.env.name}/{conf.controller.name}/s{conf.seed}",
+            should_stop=self.stop.requested,
+            replay=conf.weights.replay if conf.controller.name != "ddqn" else None,
+            box=job.setup.box(),
+        )
+        if state.episode >= episodes:
+            self.m.status = "FINISHED"
+            return
+        self.m.status = "KILLED"  # a signal stopped training at an episode boundary
+        if self.m.checkpointed != state.episode:
+            self.checkpoint()
+        self.m.reason = (
+            f"{self.stop.name} after episode {state.episode} of {episodes}; checkpoint "
+            f"written, continue with resume={self._run_id}"
+        )
+
+    @property
+    def _run_id(self) -> str:
+        assert self.m.recorder is not None
+        return self.m.recorder.run_id
+
+    def on_episode(self, stats: EpisodeStats, st: TrainState) -> None:
+        every, episodes = self.job.conf.train.checkpoint_every, self.job.conf.train.episodes
+        self.m.episode = st.episode
+        self.life.record(self.m, stats)
+        if every and st.episode % every == 0 and st.episode < episodes:
+            self.checkpoint()
+
+    def _capture(self) -> object:
+        rows = self.m.signals.n if self.job.conf.train.signals else 0
+        return capture(self.job.agent, self.job.env, self.state, self.job.rng, rows)
+
+    def checkpoint(self) -> None:
+        self.life.checkpoint(self.m, self._capture())
+
+    def interrupted(self) -> str:
+        """The ``failure_reason`` of a run stopped inside an episode (a second signal)."""
+        return (
+            f"stopped during episode {self.state.episode} of {self.job.conf.train.episodes}; "
+            f"the last checkpoint is at episode {self.m.checkpointed}, continue with "
+            f"resume={self._run_id}"
+        )
+
+    def close(self, outage: TrackingOutage | None) -> None:
+        """Close the run (and the environment); a store that is away gets the checkpoint
+        locally instead (status :data:`OUTAGE`, the run stays RUNNING)."""
         try:
-            if conf.train.signals:
-                recorder.log_signals(
-                    signals, conf.train.lr, job.setup.box(), closes_for_good(status, reason)
-                )
-            if conf.tracking.log_model:
-                with tempfile.TemporaryDirectory() as tmp:
-                    save_network(job.net, Path(tmp))
-                    recorder.log_dir(Path(tmp), folder(Artifact.MODEL))
-            if status == "FINISHED" and not conf.train.keep_checkpoints:
-                recorder.delete_artifacts(CHECKPOINT_ROOT)  # nothing left to resume
-        except TrackingOutage:
-            raise
-        except BaseException:
-            recorder.finish(status, reason, score)
-            raise
-        recorder.finish(status, reason, score)
-    except TrackingOutage as err:
-        return err
-    return None
+            if outage is None:
+                try:
+                    self.life.close(self.m, self.job.net, box=self.job.setup.box())
+                except TrackingOutage as err:
+                    outage = err
+        finally:
+            self.job.env.close()
+            if outage is not None:
+                self.m.status, self.m.reason = OUTAGE, self.stop_locally(outage)
 
-
-def _stop_locally(
-    job: Job, recorder: Recorder, state: TrainState, signals: SignalBuffer, err: TrackingOutage
-) -> str:
-    """The store stayed away past ``tracking.retry_s``: checkpoint (at the episode boundary
-    where the write failed) and the metrics not yet written into a local file; say where."""
-    conf = job.conf
-    rows = signals.n if conf.train.signals else 0
-    ckpt = capture(job.agent, job.env, state, job.rng, rows)
-    path = save_local(conf.tracking.local_checkpoints, recorder.run_id, ckpt, signals,
-                      recorder.pending)  # fmt: skip
-    message = (
-        f"{err}. Checkpoint of episode {state.episode} of {conf.train.episodes} written locally "
-        f"to {path}; the run stays RUNNING in the store. When the server answers again: "
-        f"python -m cdqn.train resume={recorder.run_id} tracking.uri={err.uri} "
-        f"tracking.local_checkpoints={path.parents[1]}"
-    )
-    log.error("%s", message)
-    return message
+    def stop_locally(self, err: TrackingOutage) -> str:
+        """The store stayed away past ``tracking.retry_s``: checkpoint (at the episode
+        boundary where the write failed) and the metrics not yet written into a local
+        file; say where."""
+        conf = self.job.conf
+        path = self.life.keep_locally(self.m, self._capture())
+        message = (
+            f"{err}. Checkpoint of episode {self.state.episode} of {conf.train.episodes} "
+            f"written locally to {path}; the run stays RUNNING in the store. When the server "
+            f"answers again: python -m cdqn.train resume={self._run_id} tracking.uri={err.uri} "
+            f"tracking.local_checkpoints={path.parents[1]}"
+        )
+        log.error("%s", message)
+        return message

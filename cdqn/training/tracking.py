@@ -32,6 +32,7 @@ from cdqn.config import EXPERIMENT_TAGS, ConfigError
 from cdqn.control.box import Box
 from cdqn.records import Artifact, Tag, folder
 from cdqn.records import Metric as M
+from cdqn.training.divergence import is_divergence
 from cdqn.training.loop import EpisodeStats
 from cdqn.training.signals import SeriesPoint, SignalBuffer, amplitude_spectra, signal_series
 
@@ -264,7 +265,7 @@ def git_commit() -> str:
 def closes_for_good(status: str, reason: str | None) -> bool:
     """Whether a run closed with ``status`` and ``reason`` is never continued (FINISHED, or
     FAILED by divergence), so that its signal series are logged once, for the whole run."""
-    return status == "FINISHED" or (status == "FAILED" and (reason or "").startswith("diverged"))
+    return status == "FINISHED" or is_divergence(status, reason)
 
 
 class Recorder:

@@ -37,6 +37,8 @@ def evaluate(study: Any, cfg: DictConfig, name: str) -> dict[str, Any]:
     """Train ``cfg`` on the fresh seeds; its objective, final score and per-seed returns.
     The seeds are split into ``tune.eval_processes`` populations trained side by side (one
     per core by default); each member's returns are read back from the store."""
+    from cdqn.training.divergence import is_divergence
+
     conf, tracker = study.conf, study.tracker
     agent = str(cfg.controller.name)
     tags = {"study": conf.tune.study, "agent": agent, "env": conf.env.name,
@@ -47,7 +49,7 @@ def evaluate(study: Any, cfg: DictConfig, name: str) -> dict[str, Any]:
     ids = [r.run_id for r in members]
     tracker.nest(run, ids)
     seeds = [int(cfg.seed) + i for i in range(len(members))]
-    failed = {s for s, r in zip(seeds, members, strict=True) if r.status == "FAILED"}
+    failed = {s for s, r in zip(seeds, members, strict=True) if is_divergence(r.status, r.reason)}
     n = study.episodes
     curves = {s: padded(tracker.returns(rid), n, s in failed) or tracker.returns(rid)
               for s, rid in zip(seeds, ids, strict=True)}  # fmt: skip

@@ -79,6 +79,7 @@ def train_population(
     """Train ``cfg``'s population; ``report(n, J_n)`` is called each ``interval`` episodes and
     returns True to prune.  Returns the progress, the result and the episode at which it was
     pruned (None: not pruned)."""
+    from cdqn.training.divergence import is_divergence
     from cdqn.training.run import run_population
 
     seeds = [int(cfg.seed) + i for i in range(int(cfg.train.population))]
@@ -88,7 +89,7 @@ def train_population(
     state: dict[str, Any] = {"next": interval, "pruned": None}
 
     def observe(member: Any) -> None:
-        if member.status == "FAILED":
+        if is_divergence(member.status, member.reason):
             prog.failed.add(member.seed)
         prog.observe(member)
         while report is not None and state["pruned"] is None:
@@ -106,7 +107,7 @@ def train_population(
         cfg, progress=False, observe=observe, should_stop=lambda: state["pruned"] is not None
     )
     for s, r in zip(seeds, result.members, strict=False):  # members in seed order
-        if r.status == "FAILED":
+        if is_divergence(r.status, r.reason):
             prog.failed.add(s)
     return prog, result, state["pruned"]
 
