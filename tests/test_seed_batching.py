@@ -96,8 +96,11 @@ def test_job_shape_of_real_configurations() -> None:
     assert job_shape(compose_config(["train.fast_path=false"])) == JobShape(False, "hinf")
     assert job_shape(compose_config(["train.population=3"])) == JobShape(False, "hinf")
     # Acrobot's id on CartPole's weights: each seed's design on its own measured NTK box
-    acrobot = compose_config(["env.id=Acrobot-v1", "controller=h2"])
-    assert job_shape(acrobot) == JobShape(False, "h2")
+    acrobot = compose_config(["env.id=Acrobot-v1", "controller=hinf_f"])
+    assert job_shape(acrobot) == JobShape(False, "hinf_f")
+    # the gain-scheduled H2 design is certified on no box: its seeds batch
+    h2 = compose_config(["env.id=Acrobot-v1", "controller=h2"])
+    assert job_shape(h2) == JobShape(True, "h2")
     assert job_shape(compose_config(["env=acrobot", "controller=h2"])) == JobShape(True, "h2")
 
 
