@@ -320,10 +320,10 @@ def test_a_sweep_config_finds_the_users_presets(tmp_path: Path) -> None:
     (beside conf/), and names a missing one in one line."""
     from cdqn.cli import check_overrides
 
-    src = (CONF_DIR / "weights" / "cartpole.yaml").read_text()
+    src = (CONF_DIR / "weights" / "acrobot.yaml").read_text()
     (tmp_path / "weights").mkdir()
-    (tmp_path / "weights" / "tuned_cartpole-h2.yaml").write_text(src)
-    common = ["env=cartpole", f"hydra.searchpath=[file://{tmp_path}]", "train.episodes=2"]
+    (tmp_path / "weights" / "tuned_acrobot-h2.yaml").write_text(src)
+    common = ["env=acrobot", f"hydra.searchpath=[file://{tmp_path}]", "train.episodes=2"]
     assert check_overrides([*common, "controller=h2"], True, "like", config_dir=SWEEPS) == []
     (msg,) = check_overrides([*common, "controller=h2,hinf"], True, "like", config_dir=SWEEPS)
-    assert "tuned_cartpole-hinf" in msg
+    assert "tuned_acrobot-hinf" in msg
