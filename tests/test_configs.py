@@ -34,9 +34,18 @@ def test_every_option_composes_and_validates(group: str) -> None:
     options = _options(group)
     assert options
     for option in options:
-        cfg = compose_config([f"{group}={option}"])
+        cfg = compose_config([f"{group}={option}", *_own_agent(group, option)])
         conf: Config = OmegaConf.to_object(cfg)
         validate(conf)
+
+
+def _own_agent(group: str, option: str) -> list[str]:
+    """A tuned weights preset carries its agent's settings: it composes with that agent
+    (``extra.tuned.agent``), as its header says."""
+    if group != "weights" or not option.startswith("tuned_"):
+        return []
+    preset = OmegaConf.load(CONF_DIR / "weights" / f"{option}.yaml")
+    return [f"controller={preset.extra.tuned.agent}"]
 
 
 @pytest.mark.parametrize("env", _options("env"))
