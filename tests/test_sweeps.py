@@ -51,16 +51,18 @@ def test_sweep_and_launcher_configs_compose(sweep: str, launcher: str) -> None:
     params = cfg.hydra.sweeper.params
     # every environment (like: those with tuned presets) and controller, the longest jobs
     # (Mountain car, Double DQN) first
-    envs = ["cartpole"] if sweep == "like" else ["mountaincar", "acrobot", "cartpole"]
+    envs = ["mountaincar", "cartpole"] if sweep == "like" else ["mountaincar", "acrobot", "cartpole"]
     assert params.env.split(",") == envs
     assert params.controller.split(",") == ["ddqn", "h2", "hinf", "hinf_f"]
     assert cfg.tracking.skip_finished and cfg.train.population >= 2
 
 
+@pytest.mark.parametrize("env", ["cartpole", "mountaincar"])
 @pytest.mark.parametrize("controller", ["ddqn", "h2", "hinf", "hinf_f"])
-def test_the_like_for_like_sweep_takes_each_agents_tuned_preset(controller: str) -> None:
-    cfg = _compose_sweep("like", ["env=cartpole", f"controller={controller}"], hydra=False)
-    assert cfg.weights.name == f"tuned_cartpole-{controller}"
+def test_the_like_for_like_sweep_takes_each_agents_tuned_preset(env: str, controller: str) -> None:
+    cfg = _compose_sweep("like", [f"env={env}", f"controller={controller}"], hydra=False)
+    assert cfg.weights.name == f"tuned_{env}-{controller}"
+    assert cfg.env.name == env and cfg.extra.tuned.agent == controller
     assert cfg.extra.tuned.budget.episodes == 500 and cfg.extra.tuned.budget.trials == 20
     assert cfg.train.episodes == 2000 and cfg.network.width == 2500
 
