@@ -84,8 +84,9 @@ from cdqn.records import Signal, Tag, column  # noqa: E402
 from cdqn.training.build import build, build_population, member_config  # noqa: E402
 from cdqn.training.lifecycle import RunLifecycle  # noqa: E402
 from cdqn.training.loop import DivergenceError, EpisodeStats, TrainState, train  # noqa: E402
+from cdqn.training.member import Member  # noqa: E402
 from cdqn.training.population_checkpoint import MemberCheckpoint  # noqa: E402
-from cdqn.training.population_loop import Member, train_population  # noqa: E402
+from cdqn.training.population_loop import train_population  # noqa: E402
 from cdqn.training.signals import (  # noqa: E402
     COLUMNS,
     SignalBuffer,

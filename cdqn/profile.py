@@ -41,7 +41,8 @@ from cdqn.control.kernels import scheduled_lqr_step, state_space_step, static_ga
 from cdqn.envs import adopt, env_presets  # noqa: E402
 from cdqn.training import population_loop  # noqa: E402
 from cdqn.training.build import build_population, member_config  # noqa: E402
-from cdqn.training.population_loop import Member, train_population  # noqa: E402
+from cdqn.training.member import Member  # noqa: E402
+from cdqn.training.population_loop import train_population  # noqa: E402
 from cdqn.training.population_step import (  # noqa: E402
     SCHEDULED_LQR,
     STATE_SPACE,

@@ -60,6 +60,7 @@ from cdqn.training.build import build_population, member_config, member_seeds
 from cdqn.training.checkpoint import CheckpointStore, load_local, local_path
 from cdqn.training.interrupt import GracefulStop
 from cdqn.training.lifecycle import RunLifecycle
+from cdqn.training.member import Member
 from cdqn.training.population_checkpoint import (
     CLOSING_FILE,
     MemberCheckpoint,
@@ -70,7 +71,7 @@ from cdqn.training.population_checkpoint import (
     restore_member,
     stored_config,
 )
-from cdqn.training.population_loop import Checkpoints, Member, train_population
+from cdqn.training.population_loop import Checkpoints, train_population
 from cdqn.training.population_step import ControlledPopulation
 from cdqn.training.result import OUTAGE, PopulationResult, RunResult
 from cdqn.training.sweep import (

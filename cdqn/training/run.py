@@ -30,7 +30,7 @@ from cdqn.training.sweep import ensure_store, finished_elsewhere, resumable_else
 from cdqn.training.tracking import TrackingError, check_tracking
 
 if TYPE_CHECKING:
-    from cdqn.training.population_loop import Member
+    from cdqn.training.member import Member
 
 log = logging.getLogger("cdqn")
 
