@@ -45,7 +45,6 @@ from cdqn.training.checkpoint import ROOT as CHECKPOINT_ROOT
 from cdqn.training.checkpoint import Checkpoint, CheckpointStore, save_local
 from cdqn.training.loop import EpisodeStats
 from cdqn.training.member import Member
-from cdqn.training.population_checkpoint import CLOSING_FILE, MemberClosing
 from cdqn.training.sweep import config_hash, process_tags, run_name
 from cdqn.training.tracking import (
     Recorder,
@@ -204,6 +203,8 @@ class RunLifecycle:
         """Keep what closing member ``m``'s run writes (status, metrics not yet written,
         signal rows, model) in ``tracking.local_checkpoints``, for a member that ended
         while the store was away."""
+        from cdqn.training.population_checkpoint import CLOSING_FILE, MemberClosing  # store away
+
         conf = self.conf
         assert m.recorder is not None
         rows = m.signals.n if conf.train.signals else 0

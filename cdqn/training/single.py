@@ -33,7 +33,6 @@ from cdqn.training.interrupt import GracefulStop
 from cdqn.training.lifecycle import RunLifecycle
 from cdqn.training.loop import EpisodeStats, TrainState, train
 from cdqn.training.member import Member
-from cdqn.training.population_checkpoint import stored_config
 from cdqn.training.result import OUTAGE, RunResult
 from cdqn.training.tracking import TrackingOutage
 
@@ -66,6 +65,8 @@ def resume_run(
     The run's stored ``config.yaml`` is what runs; ``cfg`` only says where the store is
     (``tracking.*``).  Episodes whose metrics are already in the store are not logged twice.
     """
+    from cdqn.training.population_checkpoint import stored_config  # resuming alone
+
     run_id = info.info.run_id
     stored = stored_config(client, run_id, cfg.tracking)
     conf: Config = OmegaConf.to_object(stored)
