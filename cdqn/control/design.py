@@ -20,12 +20,12 @@ import numpy as np
 
 from cdqn.config import ControllerConfig, HinfWeights, SynthesisConfig, ThetaBounds, WeightsConfig
 from cdqn.control.box import NTKBox
-from cdqn.control.certificate import Certificate, ControllerMatrices
 from cdqn.control.errors import DesignError
 from cdqn.control.runtime import StateSpace, StaticGain
 from cdqn.control.target import TargetBox
 
 if TYPE_CHECKING:
+    from cdqn.control.certificate import Certificate, ControllerMatrices
     from cdqn.control.uncertainty import CoverFit
     from cdqn.control.weights import SisoWeight
 
