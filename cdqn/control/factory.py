@@ -43,13 +43,8 @@ def make_controller(
     raise ConfigError(f"controller.design={cfg.design!r}: allowed paper, synthesize")
 
 
-def synthesized_controller(
-    cfg: ControllerConfig,
-    weights: WeightsConfig,
-    discount: float,
-    lr: float,
-    box: Any = None,
-) -> ControllerSetup:
+def synthesized_controller(cfg: ControllerConfig, weights: WeightsConfig, discount: float,
+                           lr: float, box: Any = None) -> ControllerSetup:  # fmt: skip
     """The certified synthesised controller of a run (``controller.design=synthesize``);
     ``box`` overrides the config box (a measured one).  A design the cache holds is read
     back; only a new one loads python-control and the synthesis (seconds to import)."""
