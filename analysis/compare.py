@@ -28,7 +28,6 @@ import numpy as np
 import pandas as pd
 
 from analysis import table as tbl
-from analysis.paper import PAPER_SCORES
 from analysis.runs import RunStore, comparable_runs, setting_values
 from analysis.style import CONTROLLER_ORDER, ENV_ORDER, controller_text, env_text, ordered
 
@@ -151,7 +150,7 @@ def research_markdown(research: Compared, present: tbl.Table | None) -> str:
         for env in t.envs:
             row = tbl.cell(t, ctrl, env)
             now, failed = _present(present, (env, ctrl)), research.failed.get((env, ctrl), 0)
-            paper = PAPER_SCORES.get((ctrl, env))
+            paper = tbl.PAPER_SCORES.get((ctrl, env))
             text = f"{score_text(row, failed)} ({change_text(row, now)})"
             text += f"; present {score_text(now)}"
             text += f"; paper {paper.mean:.2f} ± {paper.std:.2f}" if paper else "; paper —"

@@ -189,6 +189,15 @@ def _legend(ax: Axes) -> None:
     ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0, fontsize="small")
 
 
+def _label(ax: Axes, xlabel: str, ylabel: str, title: str, legend: bool = True) -> None:
+    """Axis labels and title of ``ax``, and its legend unless ``legend`` is false."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    if legend:
+        _legend(ax)
+
+
 def _trace(ax: Axes, x: np.ndarray, y: np.ndarray, **kw: Any) -> None:
     """Line plot; beyond :data:`MAX_LINE_POINTS`, a min-max envelope per bin (keeps peaks)."""
     if len(x) <= MAX_LINE_POINTS:
@@ -294,10 +303,8 @@ def learning(ctx: FigureContext, env: str) -> Figure:
         ax.axhline(
             threshold.iloc[0], color="k", ls=":", lw=1.2, label=f"solved ({threshold.iloc[0]:g})"
         )
-    ax.set_xlabel("episode")
-    ax.set_ylabel("return, 100-episode moving average")
-    ax.set_title(f"{env_text(env)}: mean $\\pm$ std over seeds (number of seeds)")
-    _legend(ax)
+    title = f"{env_text(env)}: mean $\\pm$ std over seeds (number of seeds)"
+    _label(ax, "episode", "return, 100-episode moving average", title)
     return fig
 
 
@@ -342,10 +349,7 @@ def q_window(ctx: FigureContext) -> Figure:
         alpha=0.8,
         label=r"$Q_2 = \max_{a'} Q(s',a')$",
     )
-    ax.set_xlabel("episode")
-    ax.set_ylabel(r"$Q$ value")
-    ax.set_title(ctx.run_title(ctx.selected, ctx.window_text(steps)))
-    _legend(ax)
+    _label(ax, "episode", r"$Q$ value", ctx.run_title(ctx.selected, ctx.window_text(steps)))
     return fig
 
 
@@ -374,9 +378,13 @@ def u_window(ctx: FigureContext) -> Figure:
         color=ctx.colors[ctx.selected["controller"]],
         lw=0.6,
     )
-    ax.set_xlabel("episode")
-    ax.set_ylabel(r"control input $u$")
-    ax.set_title(ctx.run_title(ctx.selected, ctx.window_text(steps)))
+    _label(
+        ax,
+        "episode",
+        r"control input $u$",
+        ctx.run_title(ctx.selected, ctx.window_text(steps)),
+        legend=False,
+    )
     return fig
 
 
@@ -411,10 +419,12 @@ def theta_training(ctx: FigureContext) -> Figure:
             value, **BOUND_STYLE, label=f"design bounds ({bounds.source})" if i == 0 else None
         )
     inside = np.mean((steps[S.THETA1] > bounds.theta1[0]) & (steps[S.THETA1] < bounds.theta1[1]))
-    ax.set_xlabel("episode")
-    ax.set_ylabel(r"$\Theta_1 = \Theta((s,a),(s,a))$")
-    ax.set_title(ctx.run_title(run, f"{100 * inside:.0f}% of steps inside"))
-    _legend(ax)
+    _label(
+        ax,
+        "episode",
+        r"$\Theta_1 = \Theta((s,a),(s,a))$",
+        ctx.run_title(run, f"{100 * inside:.0f}% of steps inside"),
+    )
     return fig
 
 
@@ -453,10 +463,12 @@ def ntk_range(ctx: FigureContext) -> Figure:
         **{**BOUND_STYLE, "ls": "-"},
         label=rf"${lo:g} < \Theta_1 < {hi:g}$, ${r_lo:g}\Theta_1 < \Theta_2 < {r_hi:g}\Theta_1$",
     )
-    ax.set_xlabel(r"$\Theta_1 = \Theta((s,a),(s,a))$")
-    ax.set_ylabel(r"$\Theta_2 = \Theta((s,a),(s',a'))$")
-    ax.set_title(f"NTK evaluations: {ctx.run_title(run)}")
-    _legend(ax)
+    _label(
+        ax,
+        r"$\Theta_1 = \Theta((s,a),(s,a))$",
+        r"$\Theta_2 = \Theta((s,a),(s',a'))$",
+        f"NTK evaluations: {ctx.run_title(run)}",
+    )
     return fig
 
 
@@ -533,10 +545,8 @@ def weight_bode(ctx: FigureContext) -> Figure:
             lw=1.5,
             label=f"${sym}(i\\omega)$",
         )
-    ax.set_xlabel(r"$\omega$ [rad/s]")
-    ax.set_ylabel("magnitude [dB]")
-    ax.set_title(f"{controller_label(controller)} design weights ({env_text(run['env'])})")
-    _legend(ax)
+    title = f"{controller_label(controller)} design weights ({env_text(run['env'])})"
+    _label(ax, r"$\omega$ [rad/s]", "magnitude [dB]", title)
     return fig
 
 
@@ -565,10 +575,7 @@ def closed_loop_sv(ctx: FigureContext) -> Figure:
         if col in sv:
             mag = 20 * np.log10(np.maximum(sv[col].to_numpy(dtype=float), 1e-300))
             ax.semilogx(sv["omega"], mag, color=color, ls=ls, lw=1.5, label=f"${sym}$")
-    ax.set_xlabel(r"$\omega$ [rad/s]")
-    ax.set_ylabel("singular value [dB]")
-    ax.set_title(f"Closed loop: {ctx.run_title(run)}")
-    _legend(ax)
+    _label(ax, r"$\omega$ [rad/s]", "singular value [dB]", f"Closed loop: {ctx.run_title(run)}")
     return fig
 
 

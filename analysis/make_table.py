@@ -27,18 +27,20 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 if __package__ in (None, ""):  # run as a script: make the repository root importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import pandas as pd
 
-from analysis import claims as cl
-from analysis import compare as cmp
 from analysis import table as tbl
 from analysis.cli import add_store_arguments, note, open_store, select_runs
 from analysis.columns import caption, settings_table
 from analysis.runs import RunStore, WhereError, comparable_runs, environment, where
+
+if TYPE_CHECKING:  # --claims, --research and --ablation load them (analysis.claims, .compare)
+    from analysis import compare as cmp
 
 
 def parse_thresholds(items: list[str]) -> dict[str, float]:
@@ -110,6 +112,8 @@ def compared_groups(
     store: RunStore, args: argparse.Namespace, thresholds: dict[str, float]
 ) -> list[cmp.Compared]:
     """The research preset's groups of settings, or the ablations, as tables."""
+    from analysis import compare as cmp
+
     finished = select_runs(store, args.where) if args.research else store.require_runs()
     failed = _selected(store, ["FAILED"], args.where)
     if args.research:
@@ -124,6 +128,8 @@ def present_table(
 ) -> tbl.Table | None:
     """The present table beside ``compared``: the runs of ``--experiment`` of the same cells
     and budget (:func:`analysis.compare.present_runs`); ``None`` when it has none."""
+    from analysis import compare as cmp
+
     store = RunStore(args.tracking_uri, args.experiment, statuses=args.status or ("FINISHED",))
     runs, _ = comparable_runs(_selected(store, list(store.statuses), args.where))
     runs = cmp.present_runs(runs, pd.concat([g.runs for g in compared]))
@@ -139,6 +145,8 @@ def claims_text(
 ) -> str:
     """The claims on one group of runs: ``runs`` (the table's), their per-run ``scores``,
     and for divergence every run of the same cells and ``--where`` conditions, any status."""
+    from analysis import claims as cl
+
     every = store.runs(["FINISHED", "FAILED", "KILLED", "RUNNING"])
     every = where(every.assign(env=environment(every)), conditions)
     cells = set(zip(runs["env"], runs["controller"], strict=True))
@@ -151,6 +159,8 @@ def claims_text(
 def comparison(args: argparse.Namespace, thresholds: dict[str, float]) -> int:
     """``--research`` or ``--ablation``: the tables of :mod:`analysis.compare`, on stdout and
     in ``--out``."""
+    from analysis import compare as cmp
+
     start = time.perf_counter()
     name = "research" if args.research else "ablation"
     experiment = args.research_experiment if args.research else args.ablation_experiment

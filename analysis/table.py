@@ -22,7 +22,6 @@ from typing import NamedTuple
 import numpy as np
 import pandas as pd
 
-from analysis.paper import PAPER_SCORES
 from analysis.style import (
     CONTROLLER_ORDER,
     ENV_ORDER,
@@ -37,6 +36,33 @@ LAST_EPISODES = 100
 """Episodes averaged for a run's final score (paper: "final scores after 2000 episodes")."""
 STD_DDOF = 0
 """Delta degrees of freedom of the std over seeds (NumPy's default)."""
+
+
+class Score(NamedTuple):
+    """A final score as the paper reports it (Varga, Kulcsár, Haghir Chehreghani 2022, table
+    ``tab:result_summary``: after 2000 episodes, mean ± std over 10 seeds)."""
+
+    mean: float
+    std: float
+
+
+PAPER_SCORES: dict[tuple[str, str], Score] = {
+    ("h2", "cartpole"): Score(187.92, 2.47),
+    ("h2", "acrobot"): Score(-146.44, 45.09),
+    ("h2", "mountaincar"): Score(-140.57, 5.07),
+    ("hinf_f", "cartpole"): Score(192.59, 7.13),
+    ("hinf_f", "acrobot"): Score(-99.93, 3.79),
+    ("hinf_f", "mountaincar"): Score(-141.41, 8.38),
+    ("hinf", "cartpole"): Score(199.37, 1.21),
+    ("hinf", "acrobot"): Score(-111.73, 13.17),
+    ("hinf", "mountaincar"): Score(-134.45, 8.63),
+    ("ddqn", "cartpole"): Score(197.56, 7.37),
+    ("ddqn", "acrobot"): Score(-98.04, 8.58),
+    ("ddqn", "mountaincar"): Score(-135.79, 9.41),
+}
+"""(controller, env) -> the paper's final score."""
+
+
 TABLE_METRICS = (Metric.EPISODE_RETURN, Metric.RETURN_MA100, Metric.EPISODE_LENGTH)
 """The only metrics the table reads."""
 

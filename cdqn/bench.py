@@ -62,9 +62,9 @@ import argparse  # noqa: E402
 import json  # noqa: E402
 import logging  # noqa: E402
 import statistics  # noqa: E402
-import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
+import uuid  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
@@ -76,15 +76,17 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from cdqn.agents.base import EpsilonGreedy  # noqa: E402
-from cdqn.config import CONF_DIR, Config, ConfigError, register_configs  # noqa: E402
+from cdqn.config import CONF_DIR, Config, register_configs  # noqa: E402
 from cdqn.control.factory import make_controller  # noqa: E402
 from cdqn.envs import adopt, env_presets, env_sizes, make_env  # noqa: E402
 from cdqn.network import NetworkSpec, QNetwork  # noqa: E402
-from cdqn.records import Signal, column  # noqa: E402
+from cdqn.records import Signal, Tag, column  # noqa: E402
 from cdqn.training.build import build, build_population, member_config  # noqa: E402
+from cdqn.training.lifecycle import RunLifecycle  # noqa: E402
 from cdqn.training.loop import DivergenceError, EpisodeStats, TrainState, train  # noqa: E402
-from cdqn.training.population import finish_member, start_member_run  # noqa: E402
-from cdqn.training.population_loop import Member, train_population  # noqa: E402
+from cdqn.training.member import Member  # noqa: E402
+from cdqn.training.population_checkpoint import MemberCheckpoint  # noqa: E402
+from cdqn.training.population_loop import train_population  # noqa: E402
 from cdqn.training.signals import (  # noqa: E402
     COLUMNS,
     SignalBuffer,
@@ -383,9 +385,11 @@ def _population_window(
     seeds = list(range(seed, seed + k))
     agent, venv = build_population(conf, setup, seeds)
     members = [Member(s, member_config(cfg, s)) for s in seeds]
+    life = RunLifecycle(conf, uri, MemberCheckpoint)
+    tags = {Tag.POPULATION: f"{seeds[0]}-{seeds[-1]}", Tag.POPULATION_ID: uuid.uuid4().hex}
     t_open = time.perf_counter()
     for m in members:
-        m.recorder = start_member_run(m, conf, setup, uri, f"{seeds[0]}-{seeds[-1]}")
+        life.open(m, setup, tags)
     t_open = time.perf_counter() - t_open
     timer: dict[str, float] = {"calls": 0, "member_steps": 0}
     ended: list[float] = []
@@ -422,7 +426,7 @@ def _population_window(
         m.recorder.flush()
         flushes.append(time.perf_counter() - t)
         t = time.perf_counter()
-        finish_member(m, pop.network(j), conf)
+        life.close(m, pop.network(j))
         ended.append(time.perf_counter() - t)
 
     train_population(
@@ -802,8 +806,6 @@ def format_report(r: dict[str, Any]) -> str:
 
 
 if __name__ == "__main__":
-    try:
-        main(sys.argv[1:])
-    except ConfigError as err:
-        print(f"error: {err}", file=sys.stderr)
-        sys.exit(2)
+    from cdqn.cli import run_command
+
+    run_command(main)

@@ -71,6 +71,30 @@ _RESUME_ALLOWED = re.compile(r"^(resume|tracking|tracking\.\w+|train\.progress|h
 register_configs()
 
 
+def run_command(main: Callable[[list[str]], object]) -> None:
+    """Run an argparse command (``python -m cdqn.bench``, ``python -m cdqn.profile``) on the
+    process's arguments; a refused configuration is one line ``error: ...`` on stderr and
+    exit status :data:`EXIT_CONFIG`."""
+    try:
+        main(sys.argv[1:])
+    except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        sys.exit(EXIT_CONFIG)
+
+
+def start_hydra(
+    main: Callable[[], object],
+    config_name: str = "config",
+    check: Callable[[DictConfig], None] | None = None,
+) -> None:
+    """Start a Hydra command (``python -m cdqn.train``, ``cdqn.evaluate``, ``cdqn.tune``):
+    MLflow's artifact progress bars off, :func:`preflight` on the process's arguments
+    with ``check`` (default :func:`check_train`), then ``main``."""
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
+    preflight(sys.argv[1:], config_name, check or check_train)
+    main()
+
+
 def check_train(cfg: DictConfig) -> None:
     """What ``python -m cdqn.train`` refuses: the environment's adoption, the schema's
     rules (:func:`cdqn.envs.adopt`), and the environment as the run would build it."""

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING
+from omegaconf import MISSING, DictConfig, OmegaConf
 
 
 def _conf_dir() -> Path:
@@ -33,6 +33,28 @@ def _conf_dir() -> Path:
 
 CONF_DIR = _conf_dir()
 """The Hydra config folder of every entry point (``python -m cdqn.train``, ...)."""
+
+
+AGENT_SETTING = "cdqn.agent"
+"""The resolver of an environment setting that depends on the agent (:func:`agent_setting`)."""
+AGENT_ENV_KEYS = ("normalize", "rbf_centres")
+"""The ``env`` settings an agent's weights may give (``weights.ddqn``), through
+:data:`AGENT_SETTING` in the ``env`` group's files."""
+
+
+def agent_setting(key: str, default: Any, *, _root_: DictConfig) -> Any:
+    """``${cdqn.agent:KEY,DEFAULT}``: ``weights.<controller.name>.KEY`` where the weights preset
+    gives the selected agent one (Double DQN's ``weights.ddqn.normalize`` and
+    ``weights.ddqn.rbf_centres``), else ``DEFAULT``.  The ``env`` group's files set
+    ``env.normalize`` and ``env.rbf_centres`` with it, so each group writes only its own keys;
+    an environment preset read alone (no ``controller``) takes ``DEFAULT``."""
+    name = OmegaConf.select(_root_, "controller.name", default=None)
+    if name is None:
+        return default
+    return OmegaConf.select(_root_, f"weights.{name}.{key}", default=default)
+
+
+OmegaConf.register_new_resolver(AGENT_SETTING, agent_setting, replace=True)
 
 
 class ConfigError(ValueError):

@@ -19,7 +19,6 @@ used.
 from __future__ import annotations
 
 import logging
-import os
 import sys
 import tempfile
 import time
@@ -35,7 +34,7 @@ from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
 
-from cdqn.cli import check_evaluate, preflight
+from cdqn.cli import check_evaluate, start_hydra
 from cdqn.config import (
     CONF_DIR,
     ConfigError,
@@ -205,6 +204,4 @@ def main(cfg: DictConfig) -> float:
 
 
 if __name__ == "__main__":
-    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
-    preflight(sys.argv[1:], "evaluate", check_evaluate)
-    main()
+    start_hydra(main, "evaluate", check_evaluate)

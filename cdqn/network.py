@@ -46,8 +46,6 @@ import torch
 from numba import njit
 from torch import nn
 
-from cdqn.ddqn_kernels import BLOCK, kernels
-
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
 
@@ -428,6 +426,8 @@ def double_dqn_learn(
     ``θ ← θ + α·(−∂L/∂θ)`` (torch's SGD step on L), written out by hand in
     :mod:`cdqn.ddqn_kernels`.  ``hyper``: :func:`step_settings_array`.
     """
+    from cdqn.ddqn_kernels import BLOCK, kernels  # Double DQN's alone
+
     n_actions, n_obs = online.w2.shape[1], online.w1t.shape[1]
     kernels(n_obs, n_actions).learn(
         online.w1t, online.b1, online.w2, online.b2, target.w1t, target.b1, target.w2,

@@ -22,7 +22,6 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Callable, Iterator  # noqa: E402
 from contextlib import contextmanager  # noqa: E402
@@ -42,7 +41,8 @@ from cdqn.control.kernels import scheduled_lqr_step, state_space_step, static_ga
 from cdqn.envs import adopt, env_presets  # noqa: E402
 from cdqn.training import population_loop  # noqa: E402
 from cdqn.training.build import build_population, member_config  # noqa: E402
-from cdqn.training.population_loop import Member, train_population  # noqa: E402
+from cdqn.training.member import Member  # noqa: E402
+from cdqn.training.population_loop import train_population  # noqa: E402
 from cdqn.training.population_step import (  # noqa: E402
     SCHEDULED_LQR,
     STATE_SPACE,
@@ -240,8 +240,6 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    try:
-        main(sys.argv[1:])
-    except ConfigError as err:
-        print(f"error: {err}", file=sys.stderr)
-        sys.exit(2)
+    from cdqn.cli import run_command
+
+    run_command(main)

@@ -88,11 +88,8 @@ def synthesize(cfg: DictConfig) -> str:
         raise ConfigError(
             f"controller={conf.controller.name!r}: synthesize designs hinf, hinf_f or h2"
         )
-    from cdqn.control.design import (
-        cache_root,
-        design_inputs,
-        load_or_design,
-    )
+    from cdqn.control.design import cache_root, design_inputs
+    from cdqn.control.synthesis import load_or_design
 
     box = None
     if conf.controller.synthesis.ntk_bounds == "measured":

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import sys
 
 import hydra
@@ -26,7 +25,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-from cdqn.cli import preflight, resume_conflicts
+from cdqn.cli import resume_conflicts, start_hydra
 from cdqn.config import CONF_DIR, ConfigError, register_configs, resolve_tracking_uri
 from cdqn.control.errors import DesignError
 from cdqn.training.callbacks import record_job
@@ -93,6 +92,4 @@ def main(cfg: DictConfig) -> float:
 
 
 if __name__ == "__main__":
-    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
-    preflight(sys.argv[1:])
-    main()
+    start_hydra(main)

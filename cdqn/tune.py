@@ -16,7 +16,6 @@ Implementation: :mod:`cdqn.tuning`.
 from __future__ import annotations
 
 import logging
-import os
 import sys
 
 import hydra
@@ -53,12 +52,10 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
-    from cdqn.cli import preflight
+    from cdqn.cli import start_hydra
 
-    preflight(sys.argv[1:], config_name="tune", check=check_tune)
     # the module's own main, not __main__'s: the joblib launcher's workers (tune.worker=0,1)
     # then import the task function and the config schema instead of unpickling copies
     from cdqn.tune import main as tune_main
 
-    tune_main()
+    start_hydra(tune_main, "tune", check_tune)

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
+import re
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -150,3 +154,60 @@ def test_any_discrete_gymnasium_id_runs_through_env_id() -> None:
 def test_network_dtype_option() -> None:
     net = QNetwork(NetworkSpec(2, 2, 8, "float32"))
     assert net.hidden.weight.dtype == torch.float32
+
+
+TUNED_PRESET_KEYS = {"weights", "env", "train", "controller", "extra"}
+"""The groups a tuned weights preset (``_global_``) may set: those a study tunes."""
+
+
+def _group_files() -> list[tuple[str, Path]]:
+    """Every config of a ``conf/`` group (``conf/<group>/.../<option>.yaml``) with its
+    package, the group's path dotted (``hydra/help/train.yaml``: ``hydra.help``)."""
+    return [
+        (".".join(path.relative_to(CONF_DIR).parent.parts), path)
+        for path in sorted(CONF_DIR.glob("*/**/*.yaml"))
+    ]
+
+
+def _package(text: str) -> str | None:
+    """The ``# @package`` header of a config file's text, if any."""
+    found = re.search(r"^#\s*@package\s+(\S+)", text, re.MULTILINE)
+    return found[1] if found else None
+
+
+@pytest.mark.parametrize("package, path", _group_files(), ids=lambda v: str(v)[-40:])
+def test_every_group_file_writes_only_its_own_keys(package: str, path: Path) -> None:
+    """Each file of a ``conf/`` group writes only its group's keys: a ``# @package`` header,
+    if any, names its own package (``_group_`` or the group's dotted path); its defaults list
+    extends configs of its own group only (plain names: no ``@package``, ``override`` or
+    ``group: option`` entries); and no top-level key is named like another group (``env:`` in
+    a controller file is a write meant for another group).  A setting that depends on another
+    group reads it through an interpolation in the group that owns the key (``env.normalize:
+    ${cdqn.agent:normalize,...}`` for Double DQN's weights).
+
+    The one exception, by design: a tuned weights preset (``conf/weights/tuned_*.yaml``,
+    written by ``python -m cdqn.tune``, :mod:`cdqn.tuning.presets`) is ``_global_``.  It is one
+    trial's settings in every group the study tuned, so that ``weights=<preset>`` trains that
+    trial again; it names itself (``weights.name``), records its study (``extra.tuned``) and
+    sets only the tuned groups (:data:`TUNED_PRESET_KEYS`).  Configs outside ``conf/``
+    groups (the primary configs ``conf/*.yaml``, the experiments in ``sweeps/``) set whatever
+    they compose."""
+    text = path.read_text()
+    node = OmegaConf.load(path)
+    header = _package(text)
+    if package == "weights" and path.stem.startswith("tuned_"):
+        assert header == "_global_", f"{path}: a tuned preset is _global_"
+        assert set(node) <= TUNED_PRESET_KEYS, f"{path}: sets {sorted(set(node))}"
+        assert node.weights.name == path.stem and "tuned" in node.extra
+        return
+    assert header in (None, "_group_", package), f"{path}: # @package {header}"
+    for entry in node.get("defaults", []):
+        assert isinstance(entry, str) and not re.search(r"[@:/]|^override ", entry), (
+            f"{path}: defaults entry {entry!r} places a config outside {package}"
+        )
+    group = package.split(".")[0]
+    groups = {f.name for f in dataclasses.fields(Config)} | {
+        d.name for d in CONF_DIR.iterdir() if d.is_dir()
+    }
+    others = sorted((groups - {group}) & set(node))
+    assert not others, f"{path}: top-level keys {others} belong to other groups"

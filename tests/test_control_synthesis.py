@@ -13,15 +13,9 @@ from omegaconf import OmegaConf
 from cdqn.config import Config
 from cdqn.control.box import NTKBox
 from cdqn.control.certificate import ControllerMatrices, certify, max_real_poles
-from cdqn.control.design import (
-    box_from_config,
-    design_controller,
-    design_inputs,
-    load_or_design,
-    synthesized_controller,
-)
+from cdqn.control.design import box_from_config, design_inputs
 from cdqn.control.errors import DesignError
-from cdqn.control.factory import make_controller
+from cdqn.control.factory import make_controller, synthesized_controller
 from cdqn.control.hinf import HinfWeightSet, Regularisation, generalized_plant, hinf_bisection
 from cdqn.control.runtime import StateSpace, StaticGain
 from cdqn.control.structured import (
@@ -30,6 +24,7 @@ from cdqn.control.structured import (
     default_starts,
     tune_fixed_structure,
 )
+from cdqn.control.synthesis import design_controller, load_or_design
 from cdqn.control.weights import SisoWeight
 from cdqn.ntk_bounds import summarise
 from tests.conftest import compose_config

@@ -11,10 +11,11 @@ from omegaconf import OmegaConf
 
 from cdqn.config import Config
 from cdqn.control.certificate import ControllerMatrices
-from cdqn.control.design import box_from_config, design_inputs, load_or_design
+from cdqn.control.design import box_from_config, design_inputs
 from cdqn.control.errors import DesignError
 from cdqn.control.factory import make_controller
 from cdqn.control.h2 import scheduled_gains
+from cdqn.control.synthesis import load_or_design
 from cdqn.control.target import TargetBox, dc_gain
 from tests.conftest import compose_config
 

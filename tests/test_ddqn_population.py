@@ -16,7 +16,8 @@ from cdqn.network import FastTwoLayer, NetworkSpec, QNetwork, double_dqn_step
 from cdqn.training.build import build, build_population
 from cdqn.training.ddqn_population import DDQNPopulation
 from cdqn.training.loop import TrainState, train
-from cdqn.training.population_loop import Member, train_population
+from cdqn.training.member import Member
+from cdqn.training.population_loop import train_population
 from cdqn.training.run import run_population
 from cdqn.training.signals import SignalBuffer
 from tests.conftest import compose_config

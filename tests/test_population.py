@@ -14,7 +14,8 @@ from cdqn.control.factory import make_controller
 from cdqn.envs import make_env
 from cdqn.training.build import build, build_population, member_seeds
 from cdqn.training.loop import DivergenceError, TrainState, train
-from cdqn.training.population_loop import Member, train_population
+from cdqn.training.member import Member
+from cdqn.training.population_loop import train_population
 from cdqn.training.population_step import ExplorationPlan
 from cdqn.training.run import run, run_population
 from cdqn.training.signals import SignalBuffer

@@ -431,6 +431,11 @@ def test_the_double_dqn_baseline_is_configured_as_a_training_run_would_be() -> N
     assert OmegaConf.to_container(out.controller) == OmegaConf.to_container(train_cfg.controller)
     assert out.env == train_cfg.env
     assert out.env.normalize is False and out.env.id == "Acrobot-v1"
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):  # a trial's own map
+        tuned = compose(
+            "tune", overrides=["env=acrobot", "controller=hinf_f", "env.normalize=true"]
+        )
+    assert _with_controller(tuned, "ddqn").env.normalize is False
 
 
 def test_a_specification_moves_the_tuned_controllers_own_target(tmp_path: Path) -> None:

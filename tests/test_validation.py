@@ -122,6 +122,15 @@ def test_preflight_exits_2_with_message(capsys: pytest.CaptureFixture[str]):
     preflight(["--cfg", "job", "controller=foo"])  # Hydra's own flags: left to Hydra
 
 
+def test_argparse_command_refuses_in_one_line(tmp_path: Path):
+    """``python -m cdqn.profile`` (as ``cdqn.bench``, through :func:`cdqn.cli.run_command`)
+    turns a refused configuration into one ``error:`` line and exit status 2."""
+    proc = run_cli("cdqn.profile", ["--env", "nope", "--steps", "1", "--warmup", "1"], tmp_path)
+    assert proc.returncode == EXIT_CONFIG
+    assert proc.stderr.startswith("error: env.id='nope' is not a registered")
+    assert "Traceback" not in proc.stderr
+
+
 def test_validate_schema_directly():
     conf: Config = OmegaConf.to_object(compose_config(["train.discount=0"]))
     with pytest.raises(ConfigError, match=r"train\.discount=0\.0: the discount γ"):

@@ -2,16 +2,29 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 import numpy as np
 
 from cdqn.agents.base import Agent, StepRecord
 from cdqn.agents.controlled import ControlledAgent
-from cdqn.agents.ddqn import DDQNAgent
 from cdqn.config import ControllerConfig, TrainConfig
 from cdqn.control.setup import ControllerSetup
 from cdqn.network import QNetwork
 
+if TYPE_CHECKING:
+    from cdqn.agents.ddqn import DDQNAgent
+
 __all__ = ["Agent", "ControlledAgent", "DDQNAgent", "StepRecord", "make_agent"]
+
+
+def __getattr__(name: str) -> Any:
+    """``DDQNAgent``, loaded when first asked for: a controlled run never loads Double DQN."""
+    if name == "DDQNAgent":
+        from cdqn.agents.ddqn import DDQNAgent
+
+        return DDQNAgent
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def make_agent(
@@ -23,5 +36,7 @@ def make_agent(
 ) -> Agent:
     """The agent of ``cfg.name``: Double DQN or the controlled agent with ``setup``."""
     if cfg.name == "ddqn":
+        from cdqn.agents.ddqn import DDQNAgent
+
         return DDQNAgent(net, cfg, train, rng)
     return ControlledAgent(net, setup.controller, train, cfg.reset_integrator, rng)

@@ -19,16 +19,18 @@ Per step (paper Sec. 4, Δt = α):
 from __future__ import annotations
 
 from collections.abc import Iterator
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
 from cdqn.agents.base import EpsilonGreedy, StepRecord
-from cdqn.agents.episodic_replay import Transitions
 from cdqn.config import TrainConfig
 from cdqn.control.runtime import RuntimeController, ScheduledLQR, StaticGain
 from cdqn.network import FastTwoLayer, Forward, QNetwork
+
+if TYPE_CHECKING:
+    from cdqn.agents.episodic_replay import Transitions
 
 
 def static_gain_loss(

@@ -1,6 +1,6 @@
 """Build the runtime controller of a run from its controller and weights configs: the
 research-code designs, the gain-scheduled H2, or a synthesised design
-(:mod:`cdqn.control.design`)."""
+(:mod:`cdqn.control.design`, read from its cache or made by :mod:`cdqn.control.synthesis`)."""
 
 from __future__ import annotations
 
@@ -39,11 +39,28 @@ def make_controller(
     if cfg.design == "paper":
         return _paper_controller(cfg, weights, lr)
     if cfg.design == "synthesize":
-        # python-control and the synthesis code take seconds to import: only for a synthesis
-        from cdqn.control.design import synthesized_controller
-
         return synthesized_controller(cfg, weights, discount, lr, box)
     raise ConfigError(f"controller.design={cfg.design!r}: allowed paper, synthesize")
+
+
+def synthesized_controller(cfg: ControllerConfig, weights: WeightsConfig, discount: float,
+                           lr: float, box: Any = None) -> ControllerSetup:  # fmt: skip
+    """The certified synthesised controller of a run (``controller.design=synthesize``);
+    ``box`` overrides the config box (a measured one).  A design the cache holds is read
+    back; only a new one loads python-control and the synthesis (seconds to import)."""
+    from cdqn.control.design import cache_root, cached_design, design_inputs, runtime_from_record
+
+    inputs = design_inputs(cfg, weights, discount, lr, box)
+    cache_dir = cache_root(cfg.synthesis) if cfg.synthesis.cache else None
+    found = cached_design(inputs, cache_dir)
+    if found is None:
+        from cdqn.control.synthesis import load_or_design
+
+        record, folder, _ = load_or_design(inputs, cache_dir)
+    else:
+        record, folder = found
+    ctrl = runtime_from_record(record, lr, cfg)
+    return ControllerSetup(ctrl, source="synthesized", design=record, artifacts=folder)
 
 
 def _scheduled_h2(

@@ -31,15 +31,17 @@ the target's where ρ is small and lower only where the step's loop would otherw
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from cdqn.config import TARGET_FIELDS, target_key, target_of
 from cdqn.control.box import NTKBox
-from cdqn.control.certificate import ControllerMatrices
 from cdqn.control.errors import DesignError
 from cdqn.control.kernels import project_target
+
+if TYPE_CHECKING:
+    from cdqn.control.certificate import ControllerMatrices
 
 
 @dataclass(frozen=True)

@@ -36,18 +36,19 @@ environment registered without an episode cap when ``env.max_episode_steps`` is 
 from __future__ import annotations
 
 import copy
+import functools
 from collections.abc import Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
 from dataclasses import dataclass
+from pathlib import Path
 
 import yaml
 from gymnasium.envs.registration import EnvSpec
 from omegaconf import DictConfig, OmegaConf, read_write
 
-from cdqn.config import Config, ConfigError, EnvConfig, validate
+from cdqn.config import CONF_DIR, Config, ConfigError, EnvConfig, validate
 from cdqn.envs.make import env_label, registration
-from cdqn.envs.presets import CONF_DIR, env_presets
 
 _COMMAND_LINE: ContextVar[tuple[str, ...] | None] = ContextVar("cdqn_overrides", default=None)
 BOX_SOURCES = ("config", "measured")
@@ -102,6 +103,26 @@ def adopt(cfg: DictConfig) -> Adopted:
         head = (f"env.id={env.id} is not env={preset.name}'s {preset.id}: " if preset.id != env.id
                 else f"env={preset.name} at another episode cap: ")  # fmt: skip
     return Adopted(out, conf, head + ", ".join(changed) if changed else None)
+
+
+@functools.lru_cache(maxsize=4)
+def env_presets(conf_dir: Path = CONF_DIR) -> dict[str, EnvConfig]:
+    """The environment presets shipped in ``conf_dir/env/*.yaml`` (``cartpole``, ``acrobot``,
+    ...) by their ``name``."""
+    folder = conf_dir / "env"
+
+    def load(stem: str) -> DictConfig:
+        node = OmegaConf.load(folder / f"{stem}.yaml")
+        assert isinstance(node, DictConfig)
+        bases = [d for d in node.pop("defaults", []) if d != "_self_"]
+        return OmegaConf.merge(*[load(b) for b in bases], node)
+
+    out: dict[str, EnvConfig] = {}
+    for path in sorted(folder.glob("*.yaml")):
+        preset = OmegaConf.merge(OmegaConf.structured(EnvConfig), load(path.stem))
+        env: EnvConfig = OmegaConf.to_object(preset)
+        out[env.name] = env
+    return out
 
 
 @contextmanager

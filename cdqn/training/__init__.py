@@ -15,6 +15,7 @@ layer module                                 what it holds
 1     :mod:`~cdqn.training.batching`         which seeds train as one batch (sweeps too)
 1     :mod:`~cdqn.training.divergence`       the divergence check of every run
 2     :mod:`~cdqn.training.loop`             the training loop of a single run
+2     :mod:`~cdqn.training.member`           a run in training: seed, run, signals, state
 2     :mod:`~cdqn.training.population_step`  the batched controlled agent (compiled kernels)
 3     :mod:`~cdqn.training.ddqn_population`  the batched Double DQN agent
 3     :mod:`~cdqn.training.population_loop`  the training loop of a population
@@ -33,7 +34,7 @@ layer module                                 what it holds
 
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("signals", "interrupt", "result", "batching", "divergence"),
-    ("loop", "population_step"),
+    ("loop", "member", "population_step"),
     ("ddqn_population", "population_loop"),
     ("build",),
     ("tracking", "sweep", "callbacks"),

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import gymnasium as gym
 import numpy as np
@@ -18,10 +19,11 @@ from cdqn.control.factory import make_controller
 from cdqn.control.setup import ControllerSetup
 from cdqn.envs import env_sizes, make_env
 from cdqn.network import NetworkSpec, QNetwork
-from cdqn.ntk_bounds import measured_box
-from cdqn.training.ddqn_population import DDQNPopulation
-from cdqn.training.population_step import ControlledPopulation
-from cdqn.vector_env import VectorEnv, make_vector_env
+
+if TYPE_CHECKING:
+    from cdqn.training.ddqn_population import DDQNPopulation
+    from cdqn.training.population_step import ControlledPopulation
+    from cdqn.vector_env import VectorEnv
 
 
 @dataclass
@@ -43,7 +45,11 @@ def build(conf: Config, env: gym.Env) -> Job:
     torch.manual_seed(conf.seed)
     rng = np.random.default_rng(conf.seed)
     net = QNetwork(NetworkSpec(n_obs, n_actions, conf.network.width, conf.network.dtype))
-    box = measured_box(conf, net)  # None unless controller.synthesis.ntk_bounds=measured
+    box = None  # the design's box unless controller.synthesis.ntk_bounds=measured
+    if conf.controller.synthesis.ntk_bounds != "config":
+        from cdqn.ntk_bounds import measured_box
+
+        box = measured_box(conf, net)
     setup = make_controller(
         conf.controller, conf.weights, conf.train.discount, conf.train.lr, box=box
     )
@@ -71,6 +77,10 @@ def build_population(
     """Agent and environments of a population, with the calls of :func:`build` per member
     (network initialised under ``torch.manual_seed(seed)``, exploration from
     ``np.random.default_rng(seed)``)."""
+    from cdqn.training.ddqn_population import DDQNPopulation
+    from cdqn.training.population_step import ControlledPopulation
+    from cdqn.vector_env import make_vector_env
+
     envs = [make_env(conf.env) for _ in seeds]
     n_obs, n_actions = env_sizes(envs[0])
     nets, rngs = [], []

@@ -1,6 +1,6 @@
 """The life of a run: open → record → checkpoint → close, and resume, written once.
 
-Every run cdqn trains is a :class:`~cdqn.training.population_loop.Member` of a population:
+Every run cdqn trains is a :class:`~cdqn.training.member.Member` of a population:
 a population of ``K`` seeds has ``K`` of them, a single run is a population of one (the
 same in the compiled kernels).  Tuning trials and evaluations train populations
 (:func:`cdqn.training.run.run_population`), so their members' runs pass through here too.
@@ -44,8 +44,7 @@ from cdqn.records import Artifact, Tag, folder
 from cdqn.training.checkpoint import ROOT as CHECKPOINT_ROOT
 from cdqn.training.checkpoint import Checkpoint, CheckpointStore, save_local
 from cdqn.training.loop import EpisodeStats
-from cdqn.training.population_checkpoint import CLOSING_FILE, MemberClosing
-from cdqn.training.population_loop import Member
+from cdqn.training.member import Member
 from cdqn.training.sweep import config_hash, process_tags, run_name
 from cdqn.training.tracking import (
     Recorder,
@@ -204,6 +203,8 @@ class RunLifecycle:
         """Keep what closing member ``m``'s run writes (status, metrics not yet written,
         signal rows, model) in ``tracking.local_checkpoints``, for a member that ended
         while the store was away."""
+        from cdqn.training.population_checkpoint import CLOSING_FILE, MemberClosing  # store away
+
         conf = self.conf
         assert m.recorder is not None
         rows = m.signals.n if conf.train.signals else 0

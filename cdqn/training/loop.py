@@ -9,6 +9,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import gymnasium as gym
 import numpy as np
@@ -17,13 +18,15 @@ from tqdm.auto import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 from cdqn.agents.base import Agent
-from cdqn.agents.episodic_replay import EpisodeTail, qualifies
 from cdqn.config import ReplayConfig
 from cdqn.control.box import Box
 from cdqn.records import Signal, column
 from cdqn.training.divergence import DivergenceError as DivergenceError
 from cdqn.training.divergence import check_controller, check_replayed, check_step
 from cdqn.training.signals import SignalBuffer
+
+if TYPE_CHECKING:  # loaded for a run with episodic replay
+    from cdqn.agents.episodic_replay import EpisodeTail
 
 RATE_WINDOW = 20
 """Episodes over which the progress bar's steps/s is measured (wall time, everything in)."""
@@ -173,7 +176,11 @@ def train(
     ``ratio_above_box``.
     """
     state = state or TrainState()
-    tail = EpisodeTail(replay) if replay is not None and replay.repeats > 0 else None
+    tail = None
+    if replay is not None and replay.repeats > 0:
+        from cdqn.agents.episodic_replay import EpisodeTail
+
+        tail = EpisodeTail(replay)
     run = _Episodes(env, agent, signals, seed, discount, q_limit, replay, tail, box)
     bar = _Bar(episodes, state, desc, progress)
     try:
@@ -239,7 +246,11 @@ class _Episodes:
     def _replay(self, terminated: bool, truncated: bool, ret: float, ep: int, t: int) -> int:
         """Episodic replay of the episode that ended, if it qualifies; the updates made."""
         replay, tail = self.replay, self.tail
-        if tail is None or replay is None or not qualifies(replay, terminated, truncated, ret):
+        if tail is None or replay is None:
+            return 0
+        from cdqn.agents.episodic_replay import qualifies  # loaded with the tail
+
+        if not qualifies(replay, terminated, truncated, ret):
             return 0
         replayed = 0
         for rec in self.agent.replay(tail.transitions(), replay.repeats):

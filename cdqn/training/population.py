@@ -55,13 +55,12 @@ from omegaconf import DictConfig, OmegaConf
 from cdqn.config import Config, resolve_tracking_uri, validate
 from cdqn.control.box import Box
 from cdqn.control.factory import make_controller
-from cdqn.control.setup import ControllerSetup
-from cdqn.network import QNetwork
 from cdqn.records import Tag
 from cdqn.training.build import build_population, member_config, member_seeds
 from cdqn.training.checkpoint import CheckpointStore, load_local, local_path
 from cdqn.training.interrupt import GracefulStop
 from cdqn.training.lifecycle import RunLifecycle
+from cdqn.training.member import Member
 from cdqn.training.population_checkpoint import (
     CLOSING_FILE,
     MemberCheckpoint,
@@ -72,7 +71,7 @@ from cdqn.training.population_checkpoint import (
     restore_member,
     stored_config,
 )
-from cdqn.training.population_loop import Checkpoints, Member, train_population
+from cdqn.training.population_loop import Checkpoints, train_population
 from cdqn.training.population_step import ControlledPopulation
 from cdqn.training.result import OUTAGE, PopulationResult, RunResult
 from cdqn.training.sweep import (
@@ -82,7 +81,7 @@ from cdqn.training.sweep import (
     find_finished,
     find_resumable,
 )
-from cdqn.training.tracking import Recorder, TrackingOutage, check_tracking
+from cdqn.training.tracking import TrackingOutage, check_tracking
 from cdqn.vector_env import VectorEnv
 
 log = logging.getLogger("cdqn")
@@ -557,25 +556,3 @@ def close_from_local(uri: str, client: MlflowClient, run: Any, tracking: Any) ->
     life.close(m, None, model if model.is_dir() else None)
     return RunResult(run_id, m.status, m.score, m.reason, returns=list(m.returns),
                      steps=m.signals.n, solve_threshold=conf.env.solve_threshold)  # fmt: skip
-
-
-def start_member_run(
-    m: Member,
-    conf: Config,
-    setup: ControllerSetup,
-    uri: str,
-    population: str,
-    population_id: str | None = None,
-) -> Recorder:
-    """Open member ``m``'s MLflow run (:meth:`RunLifecycle.open`), tagged ``population``
-    and ``population_id`` (what ``resume=`` finds its members by); its recorder."""
-    tags = {Tag.POPULATION: population, Tag.POPULATION_ID: population_id or uuid.uuid4().hex}
-    RunLifecycle(conf, uri, MemberCheckpoint).open(m, setup, tags)
-    assert m.recorder is not None
-    return m.recorder
-
-
-def finish_member(m: Member, net: QNetwork | None, conf: Config) -> None:
-    """Close member ``m``'s run (:meth:`RunLifecycle.close`)."""
-    assert m.recorder is not None
-    RunLifecycle(conf, m.recorder.uri, MemberCheckpoint).close(m, net)

@@ -31,11 +31,10 @@ of two schedules, by what the environments allow (:mod:`cdqn.vector_env`):
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
-from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
 from cdqn.agents.base import StepRecord
@@ -51,46 +50,13 @@ from cdqn.training.divergence import (
     replay_failed,
 )
 from cdqn.training.loop import episode_stats
+from cdqn.training.member import Member
 from cdqn.training.population_step import CHECK, DONE, ControlledPopulation
-from cdqn.training.signals import COLUMNS, SignalBuffer
+from cdqn.training.signals import COLUMNS
 from cdqn.vector_env import VectorEnv
-
-if TYPE_CHECKING:  # a member's run is opened by its lifecycle, not by the loop
-    from cdqn.training.checkpoint import CheckpointStore
-    from cdqn.training.tracking import Recorder
 
 _RECORD = tuple(column(c) for c in StepRecord._fields)
 """Indices of a :class:`StepRecord`'s fields among the signal columns."""
-
-
-@dataclass
-class Member:
-    """One seed of a population and its bookkeeping."""
-
-    seed: int
-    cfg: DictConfig
-    recorder: Recorder | None = None
-    """Writes the member's MLflow run (:mod:`cdqn.training.lifecycle`)."""
-    store: CheckpointStore | None = None
-    """The checkpoints of the member's run."""
-    signals: SignalBuffer = field(default_factory=SignalBuffer)
-    returns: list[float] = field(default_factory=list)
-    episode: int = 0
-    status: str = "RUNNING"
-    reason: str | None = None
-    carry: dict | None = None
-    replay_tail: Transitions | None = None
-    """Episodic replay: the transitions of the episode in progress, set for checkpoints."""
-    """Where a restored member stands between two steps (observation ``obs``, step ``t`` of
-    the episode, return so far ``ret``); None: it starts with a reset."""
-    checkpointed: int | None = None
-    """Episode of the member's last checkpoint, if any."""
-    logged: set[int] = field(default_factory=set)
-    """Episodes whose metrics are already stored (a resumed member skips them)."""
-
-    @property
-    def score(self) -> float:
-        return float(np.mean(self.returns[-100:])) if self.returns else float("nan")
 
 
 @dataclass

@@ -415,17 +415,24 @@ def _act_kernel(w1t, b1, w2, b2, obs, x, p, q, sx, g, pending, plan, actions):
     ``x`` already holds it (as :meth:`cdqn.network.StackedTwoLayer.forward` with ``reuse``),
     then the planned random action or ``argmax Q(obs, ·)``."""
     for k in range(obs.shape[0]):
-        same = True
-        for i in range(obs.shape[1]):
-            if obs[k, i] != x[k, i]:
-                same = False
-        if not same:
-            for i in range(obs.shape[1]):
-                x[k, i] = obs[k, i]
-            forward_pending_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], q[k], sx[k], g[k],
-                                pending[k])  # fmt: skip
-            pending[k] = False
+        _pass_at(k, obs[k], w1t, b1, w2, b2, x, p, q, sx, g, pending)
         actions[k] = plan[k] if plan[k] >= 0 else np.argmax(q[k])
+
+
+@njit(cache=True)
+def _pass_at(k, obs, w1t, b1, w2, b2, x, p, q, sx, g, pending):
+    """Member ``k``'s forward pass at ``obs`` into ``x[k], p[k], q[k]`` (applying its pending
+    ``W_1`` update), unless ``x[k]`` already holds ``obs``."""
+    same = True
+    for i in range(obs.shape[0]):
+        if obs[i] != x[k, i]:
+            same = False
+    if not same:
+        for i in range(obs.shape[0]):
+            x[k, i] = obs[i]
+        forward_pending_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], q[k], sx[k], g[k],
+                            pending[k])  # fmt: skip
+        pending[k] = False
 
 
 @njit(cache=True)
@@ -522,16 +529,7 @@ def _replay_kernel(k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, scratch, sx, g, pen
     n = 0
     for _ in range(repeats):
         for j in range(obs.shape[0]):
-            same = True
-            for i in range(obs.shape[1]):
-                if obs[j, i] != x[k, i]:
-                    same = False
-            if not same:
-                for i in range(obs.shape[1]):
-                    x[k, i] = obs[j, i]
-                forward_pending_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], q[k], sx[k], g[k],
-                                    pending[k])  # fmt: skip
-                pending[k] = False
+            _pass_at(k, obs[j], w1t, b1, w2, b2, x, p, q, sx, g, pending)
             for i in range(x2.shape[0]):
                 x2[i] = next_obs[j, i]
             q1, q2, u, xe, theta1, theta2, loss = _controlled_step(

@@ -13,6 +13,7 @@ from __future__ import annotations
 import copy
 import logging
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
@@ -21,16 +22,15 @@ from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 from cdqn.config import ConfigError, resolve_tracking_uri
 from cdqn.envs import Adopted, adopt, make_env
 from cdqn.records import Tag
-from cdqn.training.batching import batchable
 from cdqn.training.build import member_config, member_seeds
 from cdqn.training.divergence import is_divergence
-from cdqn.training.population import resume_population, start_population
-from cdqn.training.population_checkpoint import population_runs
-from cdqn.training.population_loop import Member
 from cdqn.training.result import PopulationResult, RunResult
 from cdqn.training.single import resume_run, start_run
 from cdqn.training.sweep import ensure_store, finished_elsewhere, resumable_elsewhere
 from cdqn.training.tracking import TrackingError, check_tracking
+
+if TYPE_CHECKING:
+    from cdqn.training.member import Member
 
 log = logging.getLogger("cdqn")
 
@@ -97,6 +97,9 @@ def _population(
     observe: Callable[[Member], None] | None = None,
     should_stop: Callable[[], bool] | None = None,
 ) -> PopulationResult:
+    from cdqn.training.batching import batchable  # a population's modules: loaded for one
+    from cdqn.training.population import start_population
+
     cfg, conf = adopted.cfg, adopted.conf
     if batchable(conf):
         return start_population(cfg, progress, observe, should_stop)
@@ -136,6 +139,9 @@ def resume(cfg: DictConfig, progress: bool = True) -> RunResult:
             "diverge again (start a new run with other settings)"
         )
     if Tag.POPULATION_ID in info.data.tags:  # a member: continue its whole population
+        from cdqn.training.population import resume_population
+        from cdqn.training.population_checkpoint import population_runs
+
         runs = population_runs(client, info)
         return resume_population(uri, cfg.tracking, runs, progress).summary()
     return resume_run(cfg, client, info, uri, progress)

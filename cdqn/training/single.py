@@ -2,7 +2,7 @@
 divergence and signal handling, and a tracking store that may go away.
 
 A single run is a population of one in its lifecycle (:mod:`cdqn.training.lifecycle`): one
-:class:`~cdqn.training.population_loop.Member`, opened, recorded, checkpointed, closed and
+:class:`~cdqn.training.member.Member`, opened, recorded, checkpointed, closed and
 resumed as a population's members are.  It is built (:mod:`cdqn.training.build`), trained
 by :func:`cdqn.training.loop.train` and checkpointed into its own run
 (:mod:`cdqn.training.checkpoint`) every ``train.checkpoint_every`` episodes and when
@@ -32,8 +32,7 @@ from cdqn.training.divergence import DivergenceError, failure_reason
 from cdqn.training.interrupt import GracefulStop
 from cdqn.training.lifecycle import RunLifecycle
 from cdqn.training.loop import EpisodeStats, TrainState, train
-from cdqn.training.population_checkpoint import stored_config
-from cdqn.training.population_loop import Member
+from cdqn.training.member import Member
 from cdqn.training.result import OUTAGE, RunResult
 from cdqn.training.tracking import TrackingOutage
 
@@ -66,6 +65,8 @@ def resume_run(
     The run's stored ``config.yaml`` is what runs; ``cfg`` only says where the store is
     (``tracking.*``).  Episodes whose metrics are already in the store are not logged twice.
     """
+    from cdqn.training.population_checkpoint import stored_config  # resuming alone
+
     run_id = info.info.run_id
     stored = stored_config(client, run_id, cfg.tracking)
     conf: Config = OmegaConf.to_object(stored)

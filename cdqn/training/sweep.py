@@ -104,18 +104,24 @@ def _drop_empty_env_kwargs(tree: dict[str, Any]) -> None:
         env.pop("kwargs")
 
 
-def find_finished(client: MlflowClient, experiment: str, chash: str) -> Run | None:
-    """The most recent FINISHED run tagged ``config_hash = chash``, if any."""
+def _newest_run(client: MlflowClient, experiment: str, where: str) -> Run | None:
+    """The most recently started run of ``experiment`` that matches the filter ``where``."""
     exp = client.get_experiment_by_name(experiment)
     if exp is None:
         return None
     runs = client.search_runs(
         [exp.experiment_id],
-        filter_string=f"tags.config_hash = '{chash}' and attributes.status = 'FINISHED'",
+        filter_string=where,
         max_results=1,
         order_by=["attributes.start_time DESC"],
     )
     return runs[0] if runs else None
+
+
+def find_finished(client: MlflowClient, experiment: str, chash: str) -> Run | None:
+    """The most recent FINISHED run tagged ``config_hash = chash``, if any."""
+    where = f"tags.config_hash = '{chash}' and attributes.status = 'FINISHED'"
+    return _newest_run(client, experiment, where)
 
 
 RESUMABLE = ("KILLED", "RUNNING")
@@ -149,18 +155,9 @@ def process_gone(tags: dict[str, str]) -> bool:
 def find_resumable(client: MlflowClient, experiment: str, chash: str) -> Run | None:
     """The most recent run tagged ``config_hash = chash`` that was KILLED, or left RUNNING by
     a process that is gone; a restarted sweep continues it instead of training anew."""
-    exp = client.get_experiment_by_name(experiment)
-    if exp is None:
+    run = _newest_run(client, experiment, f"tags.config_hash = '{chash}'")
+    if run is None:  # the newest run with this hash decides (FAILED: start anew)
         return None
-    runs = client.search_runs(
-        [exp.experiment_id],
-        filter_string=f"tags.config_hash = '{chash}'",
-        order_by=["attributes.start_time DESC"],
-        max_results=1,
-    )
-    if not runs:  # the newest run with this hash decides (FAILED: start anew)
-        return None
-    run = runs[0]
     status = run.info.status
     if status == "KILLED" or (status == "RUNNING" and process_gone(run.data.tags)):
         return run

@@ -19,6 +19,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf, read_write
 
 from cdqn.config import (
+    AGENT_ENV_KEYS,
     BOXED_CONTROLLERS,
     CONF_DIR,
     TARGET_CONTROLLERS,
@@ -294,20 +295,20 @@ def _counts(study: Any) -> dict[str, int]:
 
 
 def _with_controller(cfg: DictConfig, name: str) -> DictConfig:
-    """``cfg`` with the controller ``name`` (``tune.baseline``) and its global settings."""
+    """``cfg`` with the controller ``name`` (``tune.baseline``), trained as ``controller=<name>``
+    trains: the environment settings its weights give it (``weights.<name>.normalize`` and
+    ``rbf_centres``, :data:`cdqn.config.AGENT_ENV_KEYS`) replace the study's."""
     out = copy.deepcopy(cfg)
     path = CONF_DIR / "controller" / f"{name}.yaml"
     if not path.is_file():
         raise ConfigError(f"tune.baseline={name}: no conf/controller/{name}.yaml")
-    raw = OmegaConf.load(path)
-    # a controller file in the global package (ddqn.yaml) also sets other groups' keys
-    own = raw.controller if "controller" in raw else raw
+    own = OmegaConf.load(path)
+    weights = OmegaConf.select(out, f"weights.{name}", default=None)
     with read_write(out):
         out.controller = OmegaConf.merge(
             OmegaConf.structured(type(OmegaConf.to_object(cfg.controller))), own
         )
-        if "controller" in raw:
-            for key in raw:
-                if key != "controller":
-                    out[key] = OmegaConf.merge(out[key], raw[key])
+        for key in AGENT_ENV_KEYS:
+            if weights is not None and key in weights:
+                out.env[key] = f"${{weights.{name}.{key}}}"
     return out
