@@ -128,6 +128,16 @@ REFUSED = [
         ["env.id=Blackjack-v1"],
         "env.max_episode_steps=null: Blackjack-v1 is registered without an episode cap",
     ),
+    (  # gymnasium registers it with an entry point that raises ImportError
+        ["env.id=HalfCheetah-v2", "env.max_episode_steps=10"],
+        "env.id='HalfCheetah-v2' cannot be made here: its entry point "
+        "gymnasium.envs:_raise_mujoco_py_error failed to import (ImportError: The mujoco v2 "
+        "and v3 based environments have been moved to the gymnasium-robotics project",
+    ),
+    (  # a one-hot observation of 500 features: the grid's size as an order of magnitude
+        ["env.id=Taxi-v4", "env.rbf_centres=4"],
+        "env.rbf_centres=4: 4^500 = about 10^301 features, more than 4096; use fewer centres",
+    ),
 ]
 
 
@@ -195,6 +205,23 @@ def test_cli_refuses_with_one_line_and_exit_2(
         f"  - {expected}",
     ]
     assert "Traceback" not in proc.stdout and not (tmp_path / "m.db").exists()
+
+
+def test_an_entry_point_that_fails_to_import_is_one_line_and_exit_2(tmp_path: Path) -> None:
+    """gymnasium registers HalfCheetah-v2 with an entry point that raises ImportError (as a
+    missing jax or shimmy does for other ids): refused before anything starts.  gymnasium's
+    own warning that the version is out of date may come first."""
+    args = [
+        "env.id=HalfCheetah-v2",
+        "env.max_episode_steps=10",
+        f"tracking.uri=sqlite:///{tmp_path}/m.db",
+    ]
+    proc = run_cli("cdqn.train", args, tmp_path)
+    assert proc.returncode == EXIT_CONFIG, proc.stderr
+    *_, head, line = proc.stderr.strip().splitlines()
+    assert head == "cdqn: invalid configuration, nothing was started:"
+    assert line.startswith(f"  - {REFUSED[6][1]}") and line.endswith("or choose another id")
+    assert "Traceback" not in proc.stdout + proc.stderr and not (tmp_path / "m.db").exists()
 
 
 # --- discrete observations -----------------------------------------------------------------

@@ -106,6 +106,13 @@ def _make(env_id: str, kwargs: dict[str, Any], cap: int | None) -> gym.Env:
         raise ConfigError(
             f"env.id={env_id!r} needs an optional package that is not installed; {fix}"
         ) from None
+    except ImportError as err:  # a missing package of the entry point (jax, shimmy, ...)
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise ConfigError(
+            f"env.id={env_id!r} cannot be made here: its entry point {_entry_text(spec)} "
+            f"failed to import ({type(err).__name__}: {first}); install what it needs or "
+            "choose another id"
+        ) from None
     except Exception as err:  # with env.kwargs: the constructor's refusal is one line
         if not kwargs:
             raise
@@ -114,6 +121,14 @@ def _make(env_id: str, kwargs: dict[str, Any], cap: int | None) -> gym.Env:
             f"env.kwargs={kwargs}: {spec.id}'s constructor refused them "
             f"({type(err).__name__}: {first}); give arguments and values it takes"
         ) from None
+
+
+def _entry_text(spec: EnvSpec) -> str:
+    """A registration's entry point as ``module:name`` (it may be a string or a callable)."""
+    entry = spec.entry_point
+    if callable(entry):
+        return f"{entry.__module__}:{getattr(entry, '__qualname__', entry)}"
+    return str(entry)
 
 
 def make_env(cfg: EnvConfig) -> gym.Env:
@@ -175,13 +190,19 @@ def _radial_features(env: gym.Env, cfg: EnvConfig) -> RadialFeatures:
         )
     elif count > RadialFeatures.MAX_FEATURES:
         problem = (
-            f"{cfg.rbf_centres}^{space.shape[0]} = {count} features, more than "
+            f"{cfg.rbf_centres}^{space.shape[0]} = {_count_text(count)} features, more than "
             f"{RadialFeatures.MAX_FEATURES}; use fewer centres or features (env.obs_indices)"
         )
     if problem is not None:
         env.close()
         raise ConfigError(f"env.rbf_centres={cfg.rbf_centres}: {problem}")
     return RadialFeatures(env, cfg.rbf_centres, cfg.rbf_width)
+
+
+def _count_text(count: int) -> str:
+    """``count`` as written in a message: in full up to 10^9, else its order of magnitude
+    (a one-hot observation of 500 features has 4^500 grid points)."""
+    return str(count) if count <= 10**9 else f"about 10^{len(str(count)) - 1}"
 
 
 def env_sizes(env: gym.Env) -> tuple[int, int]:
