@@ -251,6 +251,23 @@ def test_discrete_observations_are_one_hot(env_id: str, sizes: list[int]) -> Non
             obs, state = env.reset(seed=t)[0], raw.reset(seed=t)[0]
 
 
+def test_an_integer_box_observation_is_scaled_and_featured_in_floats() -> None:
+    """An integer ``Box`` (cells to either side of the walker, 0..4) mapped to [−1, 1] and
+    to radial features in float32: in the Box's own integer dtype every scaled feature was
+    0 and every feature 0 or 1."""
+    base = dict(id=TOY, kwargs={"cells": True, "length": 5}, max_episode_steps=50)
+    raw = make_env(EnvConfig(**base))
+    assert raw.reset(seed=0)[0].tolist() == [0, 4]
+    scaled = make_env(EnvConfig(**base, normalize=True))
+    obs = scaled.reset(seed=0)[0]
+    assert obs.dtype == scaled.observation_space.dtype == np.float32
+    assert obs.tolist() == [-1.0, 1.0]
+    featured = make_env(EnvConfig(**base, rbf_centres=3))
+    phi = featured.reset(seed=0)[0]
+    assert phi.dtype == featured.observation_space.dtype == np.float32
+    assert phi[2] == 1.0 and phi[1] == pytest.approx(np.exp(-0.5))  # centres (0, 4), (0, 2)
+
+
 @pytest.mark.parametrize("controller", ["none", "h2"])
 def test_population_on_discrete_observations_equals_single_runs(controller: str) -> None:
     """A population of FrozenLake (one-hot, its members' own environments) learns, member

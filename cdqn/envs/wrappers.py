@@ -11,6 +11,14 @@ import numpy as np
 from gymnasium.spaces import Box, Discrete, Space, Tuple
 
 
+def real_dtype(space: Box) -> np.dtype:
+    """The dtype of a map of ``space``'s observations: its own when it is a floating one, else
+    float32 (an integer ``Box``, e.g. cell counts or a RAM state, scaled in integers would
+    round every feature to 0)."""
+    dtype = np.dtype(space.dtype)
+    return dtype if np.issubdtype(dtype, np.floating) else np.dtype(np.float32)
+
+
 class OneHot(gym.ObservationWrapper):
     """A ``Discrete(n)`` observation as the one-hot vector ``e_s`` of length ``n``; a
     ``Tuple`` of ``Discrete`` spaces as the concatenation of their one-hot vectors.
@@ -82,16 +90,17 @@ class ObservationScale(gym.ObservationWrapper):
         w = np.ones(low.shape) if widths is None else np.asarray(widths, dtype=np.float64)
         finite = np.isfinite(low) & np.isfinite(high) & (high > low)
         lo, hi = np.where(finite, low, -1.0), np.where(finite, high, 1.0)  # no inf arithmetic
-        self.offset = np.where(finite, 0.5 * (lo + hi), 0.0).astype(space.dtype)
-        self.scale = np.where(finite, 2.0 * w / (hi - lo), 1.0).astype(space.dtype)
+        dtype = real_dtype(space)
+        self.offset = np.where(finite, 0.5 * (lo + hi), 0.0).astype(dtype)
+        self.scale = np.where(finite, 2.0 * w / (hi - lo), 1.0).astype(dtype)
         self.observation_space = Box(
-            np.where(finite, -w, low).astype(space.dtype),
-            np.where(finite, w, high).astype(space.dtype),
-            dtype=space.dtype,
+            np.where(finite, -w, low).astype(dtype),
+            np.where(finite, w, high).astype(dtype),
+            dtype=dtype,
         )
 
     def observation(self, observation: np.ndarray) -> np.ndarray:
-        return (observation - self.offset) * self.scale
+        return (np.asarray(observation, self.offset.dtype) - self.offset) * self.scale
 
 
 class RadialFeatures(gym.ObservationWrapper):
@@ -121,7 +130,7 @@ class RadialFeatures(gym.ObservationWrapper):
         low, high = space.low.astype(np.float64), space.high.astype(np.float64)
         grid = [np.linspace(lo, hi, centres) for lo, hi in zip(low, high, strict=True)]
         mesh = np.meshgrid(*grid, indexing="ij")
-        self.dtype = space.dtype
+        self.dtype = real_dtype(space)
         self.centres = np.stack(mesh, axis=-1).reshape(-1, len(low)).astype(self.dtype)
         self.sigma = (width * (high - low) / (centres - 1)).astype(self.dtype)
         self.observation_space = Box(0.0, 1.0, (len(self.centres),), dtype=self.dtype)
@@ -129,7 +138,7 @@ class RadialFeatures(gym.ObservationWrapper):
     def features(self, obs: np.ndarray) -> np.ndarray:
         """``φ`` of each row of ``obs`` ``(K, d)``: ``(K, n^d)``; the population's
         environments call this on all members at once, with the same result per row."""
-        z = (obs[:, None, :] - self.centres[None, :, :]) / self.sigma
+        z = (np.asarray(obs, self.dtype)[:, None, :] - self.centres[None, :, :]) / self.sigma
         return np.exp(-0.5 * (z * z).sum(axis=-1)).astype(self.dtype)
 
     def observation(self, observation: np.ndarray) -> np.ndarray:

@@ -3,7 +3,8 @@
 ``<module>:<Id>``).
 
 ``CdqnChain-v0``: walk right along a chain of ``length`` cells (``Box`` observation, two
-actions), capped at 50 steps; ``CdqnChainNoCap-v0``: the same, registered without an
+actions; ``cells=True``: an integer ``Box`` of the cells to either side), capped at 50
+steps; ``CdqnChainNoCap-v0``: the same, registered without an
 episode cap."""
 
 from __future__ import annotations
@@ -22,13 +23,21 @@ class Chain(gym.Env):
 
     metadata: dict[str, Any] = {"render_modes": []}
 
-    def __init__(self, length: int = 8, slip: float = 0.1, step_reward: float = -1.0) -> None:
-        self.length, self.slip, self.step_reward = length, slip, step_reward
-        self.observation_space = Box(0.0, 1.0, (2,), dtype=np.float32)
+    def __init__(
+        self, length: int = 8, slip: float = 0.1, step_reward: float = -1.0, cells: bool = False
+    ) -> None:
+        self.length, self.slip, self.step_reward, self.cells = length, slip, step_reward, cells
+        self.observation_space = (
+            Box(0, length - 1, (2,), dtype=np.int64)
+            if cells
+            else Box(0.0, 1.0, (2,), dtype=np.float32)
+        )
         self.action_space = Discrete(2)
         self.pos = 0
 
     def _obs(self) -> np.ndarray:
+        if self.cells:  # an integer observation: the cells to the left and to the right
+            return np.array([self.pos, self.length - 1 - self.pos], dtype=np.int64)
         x = self.pos / (self.length - 1)
         return np.array([x, 1.0 - x], dtype=np.float32)
 
