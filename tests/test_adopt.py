@@ -268,6 +268,20 @@ def test_an_integer_box_observation_is_scaled_and_featured_in_floats() -> None:
     assert phi[2] == 1.0 and phi[1] == pytest.approx(np.exp(-0.5))  # centres (0, 4), (0, 2)
 
 
+def test_actions_numbered_from_another_start_reach_the_environment_shifted() -> None:
+    """``Discrete(2, start=-1)`` (action 0 moves right): the agents' indices 0, 1 reach the
+    environment as −1, 0; a single run and a population train (the index 1 was refused)."""
+    conf = EnvConfig(id=TOY, kwargs={"action_start": -1, "slip": 0.0, "cells": True},
+                     max_episode_steps=50)  # fmt: skip
+    env = make_env(conf)
+    assert env.action_space == gym.spaces.Discrete(2)
+    env.reset(seed=0)
+    assert env.step(1)[0].tolist() == [1, 6] and env.step(0)[0].tolist() == [0, 7]
+    overrides = [*BASE, f"env.id={TOY}", "+env.kwargs.action_start=-1", "controller=ddqn"]
+    assert _single(overrides)[0] == "FINISHED"
+    assert len(_population(overrides, [3, 4])[1].returns) == 6
+
+
 @pytest.mark.parametrize("controller", ["none", "h2"])
 def test_population_on_discrete_observations_equals_single_runs(controller: str) -> None:
     """A population of FrozenLake (one-hot, its members' own environments) learns, member

@@ -19,7 +19,13 @@ from gymnasium.envs.registration import EnvSpec
 from gymnasium.spaces import Box, Discrete
 
 from cdqn.config import ConfigError, EnvConfig
-from cdqn.envs.wrappers import ObservationScale, ObservationSubset, OneHot, RadialFeatures
+from cdqn.envs.wrappers import (
+    ActionStart,
+    ObservationScale,
+    ObservationSubset,
+    OneHot,
+    RadialFeatures,
+)
 
 EXTRAS = {
     "box2d": 'pip install "gymnasium[box2d]"',
@@ -133,15 +139,17 @@ def _entry_text(spec: EnvSpec) -> str:
 
 def make_env(cfg: EnvConfig) -> gym.Env:
     """Build the environment of ``cfg``: gymnasium id (its module imported first), its
-    constructor arguments ``env.kwargs``, episode cap, one-hot encoding of a discrete
-    observation, feature subset, scaling (``env.normalize``) and radial basis features
-    (``env.rbf_centres``), in that order."""
+    constructor arguments ``env.kwargs``, episode cap, actions numbered from 0, one-hot
+    encoding of a discrete observation, feature subset, scaling (``env.normalize``) and
+    radial basis features (``env.rbf_centres``), in that order."""
     env = _make(cfg.id, dict(cfg.kwargs or {}), cfg.max_episode_steps)
     if not isinstance(env.action_space, Discrete):
         env.close()
         raise ConfigError(
             f"env.id={cfg.id!r} has action space {env.action_space}; cdqn needs a Discrete one"
         )
+    if env.action_space.start != 0:
+        env = ActionStart(env)
     if OneHot.encodes(env.observation_space):
         env = OneHot(env)
     space = env.observation_space

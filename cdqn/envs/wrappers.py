@@ -1,7 +1,8 @@
-"""Observation wrappers: what the network sees of an environment's observation.
+"""Wrappers: what the network sees of an environment's observation, and its actions.
 
-:func:`cdqn.envs.make.make_env` applies them in the order one-hot encoding (a ``Discrete``
-or ``Tuple`` of ``Discrete`` observation), feature subset, scaling, radial basis features.
+:func:`cdqn.envs.make.make_env` numbers the actions from 0 (:class:`ActionStart`) and
+applies the observation maps in the order one-hot encoding (a ``Discrete`` or ``Tuple`` of
+``Discrete`` observation), feature subset, scaling, radial basis features.
 """
 
 from __future__ import annotations
@@ -54,6 +55,21 @@ class OneHot(gym.ObservationWrapper):
         for offset, start, value in zip(self.offsets, self.starts, values, strict=True):
             out[offset + int(value) - start] = 1.0
         return out
+
+
+class ActionStart(gym.ActionWrapper):
+    """A ``Discrete(n, start)`` action space as ``Discrete(n)``: the agents choose an index
+    ``a`` in ``0 … n−1`` (the column of Q), the environment receives ``start + a``."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        space = env.action_space
+        assert isinstance(space, Discrete)
+        self.start = int(space.start)
+        self.action_space = Discrete(int(space.n))
+
+    def action(self, action: int) -> int:
+        return self.start + int(action)
 
 
 class ObservationSubset(gym.ObservationWrapper):

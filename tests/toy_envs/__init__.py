@@ -3,8 +3,8 @@
 ``<module>:<Id>``).
 
 ``CdqnChain-v0``: walk right along a chain of ``length`` cells (``Box`` observation, two
-actions; ``cells=True``: an integer ``Box`` of the cells to either side), capped at 50
-steps; ``CdqnChainNoCap-v0``: the same, registered without an
+actions, numbered from ``action_start``; ``cells=True``: an integer ``Box`` of the cells to
+either side), capped at 50 steps; ``CdqnChainNoCap-v0``: the same, registered without an
 episode cap."""
 
 from __future__ import annotations
@@ -24,7 +24,12 @@ class Chain(gym.Env):
     metadata: dict[str, Any] = {"render_modes": []}
 
     def __init__(
-        self, length: int = 8, slip: float = 0.1, step_reward: float = -1.0, cells: bool = False
+        self,
+        length: int = 8,
+        slip: float = 0.1,
+        step_reward: float = -1.0,
+        cells: bool = False,
+        action_start: int = 0,
     ) -> None:
         self.length, self.slip, self.step_reward, self.cells = length, slip, step_reward, cells
         self.observation_space = (
@@ -32,7 +37,7 @@ class Chain(gym.Env):
             if cells
             else Box(0.0, 1.0, (2,), dtype=np.float32)
         )
-        self.action_space = Discrete(2)
+        self.action_space = Discrete(2, start=action_start)
         self.pos = 0
 
     def _obs(self) -> np.ndarray:
@@ -49,7 +54,9 @@ class Chain(gym.Env):
         return self._obs(), {}
 
     def step(self, action: int) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        move = 1 if action == 1 else -1
+        if not self.action_space.contains(action):
+            raise ValueError(f"action {action} is not in {self.action_space}")
+        move = 1 if action == self.action_space.start + 1 else -1
         if self.np_random.random() < self.slip:
             move = -move
         self.pos = min(max(self.pos + move, 0), self.length - 1)
