@@ -112,3 +112,23 @@ def _message(overrides: list[str]) -> str:
     with pytest.raises(ConfigError) as err:
         _study(overrides)
     return str(err.value)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "expected"),
+    [
+        (["env.id=FrozenLake-v1", "+env.kwargs.foo=1"],
+         "env.kwargs={'foo': 1}: FrozenLake-v1's constructor refused them (TypeError: "),
+        (["env.id=HalfCheetah-v2", "env.max_episode_steps=10"],
+         "env.id='HalfCheetah-v2' cannot be made here: its entry point "),
+    ],
+)  # fmt: skip
+def test_the_tuner_refuses_an_environment_it_cannot_make_before_it_starts(
+    overrides: list[str], expected: str
+) -> None:
+    """As ``cdqn.train``: one line before Hydra starts, not an error of the started study."""
+    from cdqn.cli import check_overrides
+    from cdqn.tune import check_tune
+
+    errors = check_overrides(overrides, config_name="tune", check=check_tune)
+    assert len(errors) == 1 and errors[0].startswith(expected), errors
