@@ -268,13 +268,14 @@ def _same_environment(study: Any, conf: TuneConfig) -> None:
     recorded when it starts, and a run of the same ``tune.study`` in the same storage with
     another of them is refused (its trials, pruning medians and preset would mix two tasks;
     the label, and so the default study name, does not say the kwargs or an adopted id's
-    cap)."""
+    cap).  A study that has trials but no record is not checked."""
     env = conf.env
     task = {"id": env.id, "kwargs": dict(env.kwargs), "max_episode_steps": env.max_episode_steps}
     task = json.loads(json.dumps(task, default=str))  # as the storage gives it back
     recorded = study.user_attrs.get("environment")
-    if recorded is None:
-        study.set_user_attr("environment", task)
+    if recorded is None:  # a study started without the record is left as it is
+        if not study.get_trials(deepcopy=False):
+            study.set_user_attr("environment", task)
     elif recorded != task:
         t = conf.tune
         raise ConfigError(
