@@ -31,10 +31,14 @@ log = logging.getLogger("cdqn.tune")
 
 
 def check_tune(cfg: DictConfig) -> None:
-    """What ``python -m cdqn.tune`` refuses (for :func:`cdqn.cli.preflight`)."""
-    from cdqn.envs import adopt
+    """What ``python -m cdqn.tune`` refuses (for :func:`cdqn.cli.preflight`): the study's
+    settings and the environment as its configuration builds it (constructor arguments, an
+    entry point that cannot be imported)."""
+    from cdqn.envs import adopt, make_env
 
-    validate_tune(adopt(cfg).conf)
+    conf = adopt(cfg).conf
+    validate_tune(conf)
+    make_env(conf.env).close()
 
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="tune")

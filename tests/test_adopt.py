@@ -128,6 +128,16 @@ REFUSED = [
         ["env.id=Blackjack-v1"],
         "env.max_episode_steps=null: Blackjack-v1 is registered without an episode cap",
     ),
+    (  # gymnasium registers it with an entry point that raises ImportError
+        ["env.id=HalfCheetah-v2", "env.max_episode_steps=10"],
+        "env.id='HalfCheetah-v2' cannot be made here: its entry point "
+        "gymnasium.envs:_raise_mujoco_py_error failed to import (ImportError: The mujoco v2 "
+        "and v3 based environments have been moved to the gymnasium-robotics project",
+    ),
+    (  # a one-hot observation of 500 features: the grid's size as an order of magnitude
+        ["env.id=Taxi-v4", "env.rbf_centres=4"],
+        "env.rbf_centres=4: 4^500 = about 10^301 features, more than 4096; use fewer centres",
+    ),
 ]
 
 
@@ -197,6 +207,23 @@ def test_cli_refuses_with_one_line_and_exit_2(
     assert "Traceback" not in proc.stdout and not (tmp_path / "m.db").exists()
 
 
+def test_an_entry_point_that_fails_to_import_is_one_line_and_exit_2(tmp_path: Path) -> None:
+    """gymnasium registers HalfCheetah-v2 with an entry point that raises ImportError (as a
+    missing jax or shimmy does for other ids): refused before anything starts.  gymnasium's
+    own warning that the version is out of date may come first."""
+    args = [
+        "env.id=HalfCheetah-v2",
+        "env.max_episode_steps=10",
+        f"tracking.uri=sqlite:///{tmp_path}/m.db",
+    ]
+    proc = run_cli("cdqn.train", args, tmp_path)
+    assert proc.returncode == EXIT_CONFIG, proc.stderr
+    *_, head, line = proc.stderr.strip().splitlines()
+    assert head == "cdqn: invalid configuration, nothing was started:"
+    assert line.startswith(f"  - {REFUSED[6][1]}") and line.endswith("or choose another id")
+    assert "Traceback" not in proc.stdout + proc.stderr and not (tmp_path / "m.db").exists()
+
+
 # --- discrete observations -----------------------------------------------------------------
 
 
@@ -222,6 +249,37 @@ def test_discrete_observations_are_one_hot(env_id: str, sizes: list[int]) -> Non
         assert (term, trunc) == (raw_term, raw_trunc)
         if term or trunc:
             obs, state = env.reset(seed=t)[0], raw.reset(seed=t)[0]
+
+
+def test_an_integer_box_observation_is_scaled_and_featured_in_floats() -> None:
+    """An integer ``Box`` (cells to either side of the walker, 0..4) mapped to [−1, 1] and
+    to radial features in float32: in the Box's own integer dtype every scaled feature was
+    0 and every feature 0 or 1."""
+    base = dict(id=TOY, kwargs={"cells": True, "length": 5}, max_episode_steps=50)
+    raw = make_env(EnvConfig(**base))
+    assert raw.reset(seed=0)[0].tolist() == [0, 4]
+    scaled = make_env(EnvConfig(**base, normalize=True))
+    obs = scaled.reset(seed=0)[0]
+    assert obs.dtype == scaled.observation_space.dtype == np.float32
+    assert obs.tolist() == [-1.0, 1.0]
+    featured = make_env(EnvConfig(**base, rbf_centres=3))
+    phi = featured.reset(seed=0)[0]
+    assert phi.dtype == featured.observation_space.dtype == np.float32
+    assert phi[2] == 1.0 and phi[1] == pytest.approx(np.exp(-0.5))  # centres (0, 4), (0, 2)
+
+
+def test_actions_numbered_from_another_start_reach_the_environment_shifted() -> None:
+    """``Discrete(2, start=-1)`` (action 0 moves right): the agents' indices 0, 1 reach the
+    environment as −1, 0; a single run and a population train (the index 1 was refused)."""
+    conf = EnvConfig(id=TOY, kwargs={"action_start": -1, "slip": 0.0, "cells": True},
+                     max_episode_steps=50)  # fmt: skip
+    env = make_env(conf)
+    assert env.action_space == gym.spaces.Discrete(2)
+    env.reset(seed=0)
+    assert env.step(1)[0].tolist() == [1, 6] and env.step(0)[0].tolist() == [0, 7]
+    overrides = [*BASE, f"env.id={TOY}", "+env.kwargs.action_start=-1", "controller=ddqn"]
+    assert _single(overrides)[0] == "FINISHED"
+    assert len(_population(overrides, [3, 4])[1].returns) == 6
 
 
 @pytest.mark.parametrize("controller", ["none", "h2"])

@@ -11,6 +11,7 @@ from hydra import compose, initialize_config_dir
 from mlflow.tracking import MlflowClient
 from omegaconf import OmegaConf
 
+from cdqn.config import ConfigError
 from cdqn.envs import adopt
 from cdqn.training.run import run
 from cdqn.tuning.evaluation import comparison_table, summarise
@@ -74,3 +75,60 @@ def test_a_tuple_observation_environment_without_cap_or_threshold_is_tuned_as_it
     trained = MlflowClient(f"sqlite:///{tmp_path / 'train.db'}").get_run(result.run_id)
     assert result.status == "FINISHED" and trained.data.tags["env"] == "Blackjack-v1"
     assert trained.data.params["env.max_episode_steps"] == "20"
+
+
+def test_a_study_refuses_another_environment_under_its_name(tmp_path: Path) -> None:
+    """The default study name is the label, which says neither ``env.kwargs`` nor an adopted
+    id's cap: a second run of the study ``FrozenLake-v1-ddqn`` on the 8x8 map without slip,
+    or at another cap, is refused before it trains or opens a run, instead of mixing its
+    trials (and preset) with the 4x4 lake's."""
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    _store(uri, "cdqn-tune", tmp_path)
+    common = [
+        "env.id=FrozenLake-v1", "controller=ddqn", f"tracking.uri={uri}",
+        f"tune.storage=sqlite:///{tmp_path / 'optuna.db'}", f"tune.preset_dir={tmp_path}",
+        "network.width=16", "tune.trials=1", "tune.seeds=1", "tune.episodes=2",
+        "tune.eval_seeds=0", "tune.pruner.kind=none",
+    ]  # fmt: skip
+    assert _study(common)["study"] == "FrozenLake-v1-ddqn"
+    kwargs = ["+env.kwargs.is_slippery=false", "+env.kwargs.map_name=8x8"]
+    for other in (kwargs, ["env.max_episode_steps=50"]):
+        with pytest.raises(ConfigError) as err:
+            _study([*common, *other, "tune.trials=2"])
+        (line,) = str(err.value).splitlines()
+        assert line.startswith(
+            f"tune.study=FrozenLake-v1-ddqn: the study in sqlite:///{tmp_path / 'optuna.db'} "
+            "tunes env env.id=FrozenLake-v1 env.max_episode_steps=100, not this run's env "
+            "env.id=FrozenLake-v1 env.max_episode_steps="
+        )
+        assert line.endswith("tune.study=<name> (or tune.storage=<url>)")
+    assert "+env.kwargs.is_slippery=False +env.kwargs.map_name=8x8" in _message([*common, *kwargs])
+    assert len(_runs(tmp_path, kind="trial")) == 1  # nothing of the refused runs
+    again = _study([*common, "tune.trials=2"])  # the same environment continues the study
+    assert again["counts"]["complete"] == 2
+
+
+def _message(overrides: list[str]) -> str:
+    with pytest.raises(ConfigError) as err:
+        _study(overrides)
+    return str(err.value)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "expected"),
+    [
+        (["env.id=FrozenLake-v1", "+env.kwargs.foo=1"],
+         "env.kwargs={'foo': 1}: FrozenLake-v1's constructor refused them (TypeError: "),
+        (["env.id=HalfCheetah-v2", "env.max_episode_steps=10"],
+         "env.id='HalfCheetah-v2' cannot be made here: its entry point "),
+    ],
+)  # fmt: skip
+def test_the_tuner_refuses_an_environment_it_cannot_make_before_it_starts(
+    overrides: list[str], expected: str
+) -> None:
+    """As ``cdqn.train``: one line before Hydra starts, not an error of the started study."""
+    from cdqn.cli import check_overrides
+    from cdqn.tune import check_tune
+
+    errors = check_overrides(overrides, config_name="tune", check=check_tune)
+    assert len(errors) == 1 and errors[0].startswith(expected), errors

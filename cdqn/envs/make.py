@@ -19,7 +19,13 @@ from gymnasium.envs.registration import EnvSpec
 from gymnasium.spaces import Box, Discrete
 
 from cdqn.config import ConfigError, EnvConfig
-from cdqn.envs.wrappers import ObservationScale, ObservationSubset, OneHot, RadialFeatures
+from cdqn.envs.wrappers import (
+    ActionStart,
+    ObservationScale,
+    ObservationSubset,
+    OneHot,
+    RadialFeatures,
+)
 
 EXTRAS = {
     "box2d": 'pip install "gymnasium[box2d]"',
@@ -106,6 +112,13 @@ def _make(env_id: str, kwargs: dict[str, Any], cap: int | None) -> gym.Env:
         raise ConfigError(
             f"env.id={env_id!r} needs an optional package that is not installed; {fix}"
         ) from None
+    except ImportError as err:  # a missing package of the entry point (jax, shimmy, ...)
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise ConfigError(
+            f"env.id={env_id!r} cannot be made here: its entry point {_entry_text(spec)} "
+            f"failed to import ({type(err).__name__}: {first}); install what it needs or "
+            "choose another id"
+        ) from None
     except Exception as err:  # with env.kwargs: the constructor's refusal is one line
         if not kwargs:
             raise
@@ -116,17 +129,27 @@ def _make(env_id: str, kwargs: dict[str, Any], cap: int | None) -> gym.Env:
         ) from None
 
 
+def _entry_text(spec: EnvSpec) -> str:
+    """A registration's entry point as ``module:name`` (it may be a string or a callable)."""
+    entry = spec.entry_point
+    if callable(entry):
+        return f"{entry.__module__}:{getattr(entry, '__qualname__', entry)}"
+    return str(entry)
+
+
 def make_env(cfg: EnvConfig) -> gym.Env:
     """Build the environment of ``cfg``: gymnasium id (its module imported first), its
-    constructor arguments ``env.kwargs``, episode cap, one-hot encoding of a discrete
-    observation, feature subset, scaling (``env.normalize``) and radial basis features
-    (``env.rbf_centres``), in that order."""
+    constructor arguments ``env.kwargs``, episode cap, actions numbered from 0, one-hot
+    encoding of a discrete observation, feature subset, scaling (``env.normalize``) and
+    radial basis features (``env.rbf_centres``), in that order."""
     env = _make(cfg.id, dict(cfg.kwargs or {}), cfg.max_episode_steps)
     if not isinstance(env.action_space, Discrete):
         env.close()
         raise ConfigError(
             f"env.id={cfg.id!r} has action space {env.action_space}; cdqn needs a Discrete one"
         )
+    if env.action_space.start != 0:
+        env = ActionStart(env)
     if OneHot.encodes(env.observation_space):
         env = OneHot(env)
     space = env.observation_space
@@ -175,13 +198,19 @@ def _radial_features(env: gym.Env, cfg: EnvConfig) -> RadialFeatures:
         )
     elif count > RadialFeatures.MAX_FEATURES:
         problem = (
-            f"{cfg.rbf_centres}^{space.shape[0]} = {count} features, more than "
+            f"{cfg.rbf_centres}^{space.shape[0]} = {_count_text(count)} features, more than "
             f"{RadialFeatures.MAX_FEATURES}; use fewer centres or features (env.obs_indices)"
         )
     if problem is not None:
         env.close()
         raise ConfigError(f"env.rbf_centres={cfg.rbf_centres}: {problem}")
     return RadialFeatures(env, cfg.rbf_centres, cfg.rbf_width)
+
+
+def _count_text(count: int) -> str:
+    """``count`` as written in a message: in full up to 10^9, else its order of magnitude
+    (a one-hot observation of 500 features has 4^500 grid points)."""
+    return str(count) if count <= 10**9 else f"about 10^{len(str(count)) - 1}"
 
 
 def env_sizes(env: gym.Env) -> tuple[int, int]:

@@ -1,7 +1,8 @@
-"""Observation wrappers: what the network sees of an environment's observation.
+"""Wrappers: what the network sees of an environment's observation, and its actions.
 
-:func:`cdqn.envs.make.make_env` applies them in the order one-hot encoding (a ``Discrete``
-or ``Tuple`` of ``Discrete`` observation), feature subset, scaling, radial basis features.
+:func:`cdqn.envs.make.make_env` numbers the actions from 0 (:class:`ActionStart`) and
+applies the observation maps in the order one-hot encoding (a ``Discrete`` or ``Tuple`` of
+``Discrete`` observation), feature subset, scaling, radial basis features.
 """
 
 from __future__ import annotations
@@ -9,6 +10,14 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 from gymnasium.spaces import Box, Discrete, Space, Tuple
+
+
+def real_dtype(space: Box) -> np.dtype:
+    """The dtype of a map of ``space``'s observations: its own when it is a floating one, else
+    float32 (an integer ``Box``, e.g. cell counts or a RAM state, scaled in integers would
+    round every feature to 0)."""
+    dtype = np.dtype(space.dtype)
+    return dtype if np.issubdtype(dtype, np.floating) else np.dtype(np.float32)
 
 
 class OneHot(gym.ObservationWrapper):
@@ -48,6 +57,21 @@ class OneHot(gym.ObservationWrapper):
         return out
 
 
+class ActionStart(gym.ActionWrapper):
+    """A ``Discrete(n, start)`` action space as ``Discrete(n)``: the agents choose an index
+    ``a`` in ``0 … n−1`` (the column of Q), the environment receives ``start + a``."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        space = env.action_space
+        assert isinstance(space, Discrete)
+        self.start = int(space.start)
+        self.action_space = Discrete(int(space.n))
+
+    def action(self, action: int) -> int:
+        return self.start + int(action)
+
+
 class ObservationSubset(gym.ObservationWrapper):
     """Keep only the observation features ``indices`` (e.g. pole angle and velocity)."""
 
@@ -82,16 +106,17 @@ class ObservationScale(gym.ObservationWrapper):
         w = np.ones(low.shape) if widths is None else np.asarray(widths, dtype=np.float64)
         finite = np.isfinite(low) & np.isfinite(high) & (high > low)
         lo, hi = np.where(finite, low, -1.0), np.where(finite, high, 1.0)  # no inf arithmetic
-        self.offset = np.where(finite, 0.5 * (lo + hi), 0.0).astype(space.dtype)
-        self.scale = np.where(finite, 2.0 * w / (hi - lo), 1.0).astype(space.dtype)
+        dtype = real_dtype(space)
+        self.offset = np.where(finite, 0.5 * (lo + hi), 0.0).astype(dtype)
+        self.scale = np.where(finite, 2.0 * w / (hi - lo), 1.0).astype(dtype)
         self.observation_space = Box(
-            np.where(finite, -w, low).astype(space.dtype),
-            np.where(finite, w, high).astype(space.dtype),
-            dtype=space.dtype,
+            np.where(finite, -w, low).astype(dtype),
+            np.where(finite, w, high).astype(dtype),
+            dtype=dtype,
         )
 
     def observation(self, observation: np.ndarray) -> np.ndarray:
-        return (observation - self.offset) * self.scale
+        return (np.asarray(observation, self.offset.dtype) - self.offset) * self.scale
 
 
 class RadialFeatures(gym.ObservationWrapper):
@@ -121,7 +146,7 @@ class RadialFeatures(gym.ObservationWrapper):
         low, high = space.low.astype(np.float64), space.high.astype(np.float64)
         grid = [np.linspace(lo, hi, centres) for lo, hi in zip(low, high, strict=True)]
         mesh = np.meshgrid(*grid, indexing="ij")
-        self.dtype = space.dtype
+        self.dtype = real_dtype(space)
         self.centres = np.stack(mesh, axis=-1).reshape(-1, len(low)).astype(self.dtype)
         self.sigma = (width * (high - low) / (centres - 1)).astype(self.dtype)
         self.observation_space = Box(0.0, 1.0, (len(self.centres),), dtype=self.dtype)
@@ -129,7 +154,7 @@ class RadialFeatures(gym.ObservationWrapper):
     def features(self, obs: np.ndarray) -> np.ndarray:
         """``φ`` of each row of ``obs`` ``(K, d)``: ``(K, n^d)``; the population's
         environments call this on all members at once, with the same result per row."""
-        z = (obs[:, None, :] - self.centres[None, :, :]) / self.sigma
+        z = (np.asarray(obs, self.dtype)[:, None, :] - self.centres[None, :, :]) / self.sigma
         return np.exp(-0.5 * (z * z).sum(axis=-1)).astype(self.dtype)
 
     def observation(self, observation: np.ndarray) -> np.ndarray:

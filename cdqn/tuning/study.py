@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import json
 import logging
 import time
 from pathlib import Path
@@ -165,6 +166,7 @@ class Study:
                 pruner=make_pruner(t.pruner, self.episodes),
                 load_if_exists=True,
             )
+            _same_environment(study, self.conf)
             self.parent = self.tracker.parent(study, self.conf, self.cfg)
             size = EvaluationSize(t.eval_seeds, eval_processes(t.eval_processes, t.eval_seeds),
                                   self.episodes, 2 if t.baseline else 1)  # fmt: skip
@@ -260,6 +262,33 @@ class Study:
             metrics["baseline_objective"] = summary["baseline"]["objective"]
             metrics["baseline_final_score"] = summary["baseline"]["final_score"]
         summary["comparison"] = write_comparison(self, summary)
+
+
+def _same_environment(study: Any, conf: TuneConfig) -> None:
+    """A study is one environment's: its id, constructor arguments and episode cap are
+    recorded when it starts, and a run of the same ``tune.study`` in the same storage with
+    another of them is refused (its trials, pruning medians and preset would mix two tasks;
+    the label, and so the default study name, does not say the kwargs or an adopted id's
+    cap).  A study that has trials but no record is not checked."""
+    env = conf.env
+    task = {"id": env.id, "kwargs": dict(env.kwargs), "max_episode_steps": env.max_episode_steps}
+    task = json.loads(json.dumps(task, default=str))  # as the storage gives it back
+    recorded = study.user_attrs.get("environment")
+    if recorded is None:  # a study started without the record is left as it is
+        if not study.get_trials(deepcopy=False):
+            study.set_user_attr("environment", task)
+    elif recorded != task:
+        t = conf.tune
+        raise ConfigError(
+            f"tune.study={t.study}: the study in {t.storage} tunes env {_task_text(recorded)}, "
+            f"not this run's env {_task_text(task)}; give this environment its own study, "
+            "tune.study=<name> (or tune.storage=<url>)"
+        )
+
+
+def _task_text(task: dict[str, Any]) -> str:
+    kwargs = "".join(f" +env.kwargs.{k}={v}" for k, v in sorted(task["kwargs"].items()))
+    return f"env.id={task['id']} env.max_episode_steps={task['max_episode_steps']}{kwargs}"
 
 
 def _retry_interrupted(study: Any) -> None:

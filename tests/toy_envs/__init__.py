@@ -3,7 +3,8 @@
 ``<module>:<Id>``).
 
 ``CdqnChain-v0``: walk right along a chain of ``length`` cells (``Box`` observation, two
-actions), capped at 50 steps; ``CdqnChainNoCap-v0``: the same, registered without an
+actions, numbered from ``action_start``; ``cells=True``: an integer ``Box`` of the cells to
+either side), capped at 50 steps; ``CdqnChainNoCap-v0``: the same, registered without an
 episode cap."""
 
 from __future__ import annotations
@@ -22,13 +23,26 @@ class Chain(gym.Env):
 
     metadata: dict[str, Any] = {"render_modes": []}
 
-    def __init__(self, length: int = 8, slip: float = 0.1, step_reward: float = -1.0) -> None:
-        self.length, self.slip, self.step_reward = length, slip, step_reward
-        self.observation_space = Box(0.0, 1.0, (2,), dtype=np.float32)
-        self.action_space = Discrete(2)
+    def __init__(
+        self,
+        length: int = 8,
+        slip: float = 0.1,
+        step_reward: float = -1.0,
+        cells: bool = False,
+        action_start: int = 0,
+    ) -> None:
+        self.length, self.slip, self.step_reward, self.cells = length, slip, step_reward, cells
+        self.observation_space = (
+            Box(0, length - 1, (2,), dtype=np.int64)
+            if cells
+            else Box(0.0, 1.0, (2,), dtype=np.float32)
+        )
+        self.action_space = Discrete(2, start=action_start)
         self.pos = 0
 
     def _obs(self) -> np.ndarray:
+        if self.cells:  # an integer observation: the cells to the left and to the right
+            return np.array([self.pos, self.length - 1 - self.pos], dtype=np.int64)
         x = self.pos / (self.length - 1)
         return np.array([x, 1.0 - x], dtype=np.float32)
 
@@ -40,7 +54,9 @@ class Chain(gym.Env):
         return self._obs(), {}
 
     def step(self, action: int) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        move = 1 if action == 1 else -1
+        if not self.action_space.contains(action):
+            raise ValueError(f"action {action} is not in {self.action_space}")
+        move = 1 if action == self.action_space.start + 1 else -1
         if self.np_random.random() < self.slip:
             move = -move
         self.pos = min(max(self.pos + move, 0), self.length - 1)
