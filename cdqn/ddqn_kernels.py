@@ -24,9 +24,21 @@ Two compiled loops do it without a ``(B, W)`` temporary:
 
 The loops are written out for the network's ``(n, m)`` (source generated from the template
 below, written once to a cache folder so that numba caches its machine code on disk) and run
-in the network's dtype.  The same compiled :func:`learn` serves a single run (a stack of one)
+in the network's dtype.  The same compiled ``learn`` serves a single run (a stack of one)
 and every member of a population, so a member computes exactly the numbers of the single run
 of its seed.
+
+**Inputs with zeros.**  A minibatch whose inputs (the ``s_i`` and ``s'_i``) are at most half
+nonzero, such as one-hot encoded states (:class:`cdqn.envs.OneHot`: one 1 among Taxi's 500
+inputs), takes the same step through :func:`sparse_step`, a loop (not written out per shape)
+over each sample's nonzero inputs: a pre-activation costs ``nnz(s_i)`` multiply-adds instead
+of ``n``, and ``∂L/∂W_1`` is summed only for the inputs nonzero in some ``s_i`` (the others'
+is 0, and their rows of ``W_1`` are not touched).  Its sums over the samples and hidden units
+run in another order than the unrolled kernel's, so the two agree to rounding
+(``tests/test_sparse_inputs.py``).  :func:`learn` chooses per member and minibatch
+(:func:`sparse_members`), from the minibatch alone, so a member and the single run of its
+seed still take the same route; the unrolled kernel of a shape is generated and compiled
+only when a minibatch with more nonzeros comes.
 """
 
 from __future__ import annotations
@@ -399,7 +411,7 @@ def _cache_dir() -> Path:
 
 @functools.cache
 def kernels(n_obs: int, n_actions: int) -> ModuleType:
-    """The compiled module for ``n_obs`` inputs and ``n_actions`` actions: :func:`learn`
+    """The compiled module for ``n_obs`` inputs and ``n_actions`` actions: ``learn``
     (``members`` of stacked networks, each its minibatch ``idx[k]`` from its buffer) and the
     loops it calls (module docstring)."""
     source = _source(n_obs, n_actions)
