@@ -177,9 +177,8 @@ def forward_pending_row(w1t, b1, w2, b2, x, p, q, sx, g, pending):
             pb[jj] = bb[jj]
         for i in range(n_obs):
             xi, wi = x[i], w1t[i, j0 : j0 + n]
-            si = sx[i] if pending else 0.0
-            if si != 0.0:
-                gb = g[j0 : j0 + n]
+            if pending and sx[i] != 0.0:
+                si, gb = sx[i], g[j0 : j0 + n]
                 if xi != 0.0:
                     for jj in range(n):
                         w = wi[jj] + si * gb[jj]

@@ -70,22 +70,28 @@ def _dense_w1_step(w1t, x, s, g):
 
 
 @pytest.mark.parametrize("kind", KINDS)
-@pytest.mark.parametrize(("n_obs", "width"), [(500, 700), (45, 33)])
+@pytest.mark.parametrize(
+    ("n_obs", "width", "dtype"),
+    [(500, 700, np.float64), (45, 33, np.float64), (36, 40, np.float32)],
+)
 def test_row_kernels_equal_the_dense_products_bit_for_bit(
-    kind: str, n_obs: int, width: int
+    kind: str, n_obs: int, width: int, dtype: type
 ) -> None:
     """The pass (with and without a pending update), the pending update on its own and the
-    SGD step leave the numbers of the products over every input; rows of zero inputs are
-    not changed."""
+    SGD step leave the numbers of the products over every input, in either dtype; rows of
+    zero inputs are not changed."""
     gen = np.random.default_rng(n_obs)
     for _ in range(5):
-        w1t, b1, w2, b2 = (gen.normal(size=s) for s in ((n_obs, width), width, (3, width), 3))
-        x, x_prev = _input(kind, n_obs, gen), _input(kind, n_obs, gen)
-        g, s = gen.normal(size=width), 1e-3 * gen.normal()
+        w1t, b1, w2, b2 = (
+            gen.normal(size=s).astype(dtype) for s in ((n_obs, width), width, (3, width), 3)
+        )
+        x, x_prev = (_input(kind, n_obs, gen).astype(dtype) for _ in range(2))
+        g, s = gen.normal(size=width).astype(dtype), dtype(1e-3 * gen.normal())
         sx = s * x_prev
         for pending in (False, True):
             w_fast, w_ref = w1t.copy(), w1t.copy()
-            p, q, p_ref, q_ref = np.empty(width), np.empty(3), np.empty(width), np.empty(3)
+            p, q = np.empty(width, dtype), np.empty(3, dtype)
+            p_ref, q_ref = np.empty(width, dtype), np.empty(3, dtype)
             forward_pending_row(w_fast, b1, w2, b2, x, p, q, sx, g, pending)
             _dense_forward_pending(w_ref, b1, w2, b2, x, p_ref, q_ref, sx, g, pending)
             assert np.array_equal(p, p_ref) and np.array_equal(q, q_ref)
@@ -97,9 +103,9 @@ def test_row_kernels_equal_the_dense_products_bit_for_bit(
         assert np.array_equal(w_fast[x_prev == 0.0], w1t[x_prev == 0.0])
 
         fast, ref = [a.copy() for a in (w1t, b1, w2, b2)], [a.copy() for a in (w1t, b1, w2, b2)]
-        f = np.empty(width), np.empty(3)
+        f = np.empty(width, dtype), np.empty(3, dtype)
         forward_pending_row(*fast, x_prev, *f, sx, g, False)
-        sgd_row(*fast, x_prev, f[0], 1, s, g, x, p, np.empty(width), np.empty(3))
+        sgd_row(*fast, x_prev, f[0], 1, s, g, x, p, np.empty(width, dtype), np.empty(3, dtype))
         _dense_w1_step(ref[0], x_prev, s, g)
         assert np.array_equal(fast[0], ref[0])
 
