@@ -13,8 +13,10 @@ import torch
 from numba import njit
 
 from cdqn.agents.ddqn import DDQNAgent
-from cdqn.config import ControllerConfig, TrainConfig
+from cdqn.bench import nonzero_inputs
+from cdqn.config import ControllerConfig, EnvConfig, TrainConfig
 from cdqn.ddqn_kernels import BLOCK, kernels, sparse_learn, sparse_members
+from cdqn.envs import make_env
 from cdqn.network import (
     _JIT,
     FastTwoLayer,
@@ -231,3 +233,13 @@ def test_ddqn_population_on_one_hot_states_steps_as_single_runs() -> None:
         for key in ("net", "target"):
             for name, value in state[key].items():
                 assert torch.equal(m.cfg[key][name], value), (key, name)
+
+
+@pytest.mark.parametrize(
+    ("env_id", "nonzero"), [("Taxi-v4", 1), ("Blackjack-v1", 3), ("CartPole-v1", 4)]
+)
+def test_benchmark_counts_the_nonzero_inputs(env_id: str, nonzero: int) -> None:
+    """The benchmark's limit counts the first layer over the inputs the kernels read: one
+    per ``Discrete`` part of a one-hot observation, every input of a dense one."""
+    env = make_env(EnvConfig(id=env_id, max_episode_steps=20))
+    assert nonzero_inputs(env) == nonzero
