@@ -154,7 +154,8 @@ class Product:
 
 def agent_products(conf: Config, n_obs: int, n_actions: int) -> list[Product]:
     """The arithmetic of one environment step of ``conf``'s agent on the two-layer network
-    (width ``W``, ``n`` inputs, ``m`` actions), as matrix products.
+    (width ``W``, ``n`` inputs, or the nonzero ones of :func:`nonzero_inputs`, ``m``
+    actions), as matrix products.
 
     Every agent: the pass at ``s'`` (``(1×n)(n×W)``, ``(1×W)(W×m)``) and the NTK's four sums
     over hidden units (Θ1, Θ2).  Double DQN also the pass at ``s`` (its act), and every
@@ -177,6 +178,20 @@ def agent_products(conf: Config, n_obs: int, n_actions: int) -> list[Product]:
         Product(b, m, w, every),  # ∂L/∂h
         Product(n, b, w, every),  # ∂L/∂W_1
     ]
+
+
+def nonzero_inputs(env: Any, steps: int = 50) -> int:
+    """The inputs the first layer's products run over (:mod:`cdqn.network`, zero inputs):
+    the mean number of nonzero entries of the observations of ``steps`` random steps,
+    rounded (1 for a one-hot state, every input of a dense observation)."""
+    rng = np.random.default_rng(0)
+    obs, counts = env.reset(seed=0)[0], []
+    for _ in range(steps):
+        counts.append(np.count_nonzero(obs))
+        obs, _, terminated, truncated, _ = env.step(int(rng.integers(env.action_space.n)))
+        if terminated or truncated:
+            obs = env.reset()[0]
+    return max(1, round(float(np.mean(counts))))
 
 
 def _best_seconds(fn: Any, repeats: int) -> float:
@@ -217,7 +232,7 @@ def measure_limits(cfgs: dict[str, DictConfig]) -> dict[str, dict[str, float]]:
     for c, cfg in cfgs.items():
         conf = _conf(cfg)
         env = make_env(conf.env)
-        products = agent_products(conf, *env_sizes(env))
+        products = agent_products(conf, nonzero_inputs(env), env_sizes(env)[1])
         env.close()
         dtype = conf.network.dtype
         if dtype not in peak:

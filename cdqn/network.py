@@ -32,6 +32,14 @@ contiguous), so the rank-one update ``W_1 += s\\,g\\,x^\\top`` streams rows of l
 ``width``.  The forward pass, Θ1/Θ2 and the step are three compiled loops (numba) over the
 members and hidden units, each one pass over the parameters: no temporaries, no per-call
 overhead of a dozen array operations.
+
+**Zero inputs.**  Every product with ``x``, the pass ``p = b_1 + Σ_i x_i W_1ᵀ[i]`` and the
+step's ``W_1ᵀ[i] += s x_i g``, runs over the inputs with ``x_i ≠ 0`` only, decided input by
+input: a one-hot observation (:class:`cdqn.envs.OneHot`, Taxi's 500 states) costs one row
+of ``W_1ᵀ`` instead of 500, a dense one (CartPole) every row as before.  While the
+parameters are finite this changes no bit: ``p_j + W_1ᵀ[i, j]·0 = p_j`` and
+``W_1ᵀ[i, j] + 0·g_j = W_1ᵀ[i, j]``, and the sums over the other inputs keep their order.
+Double DQN's minibatch step does the same per minibatch (:mod:`cdqn.ddqn_kernels`).
 """
 
 from __future__ import annotations
@@ -155,7 +163,9 @@ def forward_pending_row(w1t, b1, w2, b2, x, p, q, sx, g, pending):
     element updated as :func:`sgd_row` updates it and then multiplied into ``p``, so one
     pass over ``W_1`` does both.  Per hidden unit ``j`` the sum
     ``p_j = b_1[j] + x_0 W_1ᵀ[0, j] + x_1 W_1ᵀ[1, j] + …`` is taken in input order, as
-    unblocked, so the blocks change no bit."""
+    unblocked, so the blocks change no bit.
+
+    Rows with ``x_i = 0`` and ``sx_i = 0`` are not read (module docstring, zero inputs)."""
     n_obs, width = w1t.shape
     for j0 in range(0, width, _BLOCK):
         n = min(j0 + _BLOCK, width) - j0
@@ -164,13 +174,17 @@ def forward_pending_row(w1t, b1, w2, b2, x, p, q, sx, g, pending):
             pb[jj] = bb[jj]
         for i in range(n_obs):
             xi, wi = x[i], w1t[i, j0 : j0 + n]
-            if pending:
+            if pending and sx[i] != 0.0:
                 si, gb = sx[i], g[j0 : j0 + n]
-                for jj in range(n):
-                    w = wi[jj] + si * gb[jj]
-                    wi[jj] = w
-                    pb[jj] += w * xi
-            else:
+                if xi != 0.0:
+                    for jj in range(n):
+                        w = wi[jj] + si * gb[jj]
+                        wi[jj] = w
+                        pb[jj] += w * xi
+                else:
+                    for jj in range(n):
+                        wi[jj] = wi[jj] + si * gb[jj]
+            elif xi != 0.0:
                 for jj in range(n):
                     pb[jj] += wi[jj] * xi
     output_row(w2, b2, p, q)
@@ -178,9 +192,12 @@ def forward_pending_row(w1t, b1, w2, b2, x, p, q, sx, g, pending):
 
 @njit(**_JIT)
 def apply_pending_row(w1t, sx, g):
-    """The deferred ``W_1ᵀ[i] += sx_i g`` of :func:`sgd_deferred_row`, on its own."""
+    """The deferred ``W_1ᵀ[i] += sx_i g`` of :func:`sgd_deferred_row`, on its own (the rows
+    with ``sx_i ≠ 0``)."""
     for i in range(w1t.shape[0]):
         si, wi = sx[i], w1t[i]
+        if si == 0.0:
+            continue
         for j in range(w1t.shape[1]):
             wi[j] = wi[j] + si * g[j]
 
@@ -233,8 +250,9 @@ def sgd_row(w1t, b1, w2, b2, x, p, a, s, g, x2, p2, p_next, q_next):
     for i in range(n_obs):
         sx = s * x[i]
         xx2 += x[i] * x2[i]
-        for j in range(width):
-            w1t[i, j] += sx * g[j]
+        if sx != 0.0:  # a row with x_i = 0 (or s = 0) stays as it is
+            for j in range(width):
+                w1t[i, j] += sx * g[j]
     for j in range(width):
         b1[j] += s * g[j]
     c = s * (xx2 + 1.0)
@@ -426,10 +444,10 @@ def double_dqn_learn(
     ``θ ← θ + α·(−∂L/∂θ)`` (torch's SGD step on L), written out by hand in
     :mod:`cdqn.ddqn_kernels`.  ``hyper``: :func:`step_settings_array`.
     """
-    from cdqn.ddqn_kernels import BLOCK, kernels  # Double DQN's alone
+    from cdqn.ddqn_kernels import BLOCK  # Double DQN's alone
+    from cdqn.ddqn_kernels import learn as minibatch_learn
 
-    n_actions, n_obs = online.w2.shape[1], online.w1t.shape[1]
-    kernels(n_obs, n_actions).learn(
+    minibatch_learn(
         online.w1t, online.b1, online.w2, online.b2, target.w1t, target.b1, target.w2,
         target.b2, *replay, idx, members, hyper, BLOCK, last_loss,
     )  # fmt: skip

@@ -23,8 +23,9 @@ learning member's minibatch indices with the member's generator as the single ru
 them (exploration and sampling share it, so neither can be drawn ahead), then one compiled
 call (:func:`cdqn.network.double_dqn_learn`) gathers every learning member's minibatch from
 its buffer and takes its step with the kernel a single run uses on its stack of one
-(:mod:`cdqn.ddqn_kernels`).  So each member computes the numbers of the single run of its
-seed, bit for bit (``tests/test_ddqn_population.py``); what the population saves is the
+(:mod:`cdqn.ddqn_kernels`; the loop over the nonzero inputs for a minibatch of mostly
+zeros, chosen from the minibatch alone).  So each member computes the numbers of the single
+run of its seed, bit for bit (``tests/test_ddqn_population.py``); what the population saves is the
 per-step Python of ``K`` runs.
 """
 

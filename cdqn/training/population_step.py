@@ -18,7 +18,9 @@ member computes the numbers of the single run of its seed, bit for bit
 ``W_1`` changes: a member's SGD step leaves its ``W_1`` update pending
 (:func:`cdqn.network.sgd_deferred_row`) and the member's next forward pass applies it
 element by element on its way through ``W_1`` (:func:`cdqn.network.forward_pending_row`),
-with the same operations, so one pass over ``W_1`` per step does both.  Nothing reads
+with the same operations, so one pass over ``W_1`` per step does both (over the rows of
+the nonzero inputs of ``s`` and ``s'`` only, as every product with ``x`` in
+:mod:`cdqn.network`).  Nothing reads
 ``W_1`` in between; :meth:`ControlledPopulation.flush` applies what is pending before the
 parameters are read from outside.  Exploration is drawn ahead in blocks
 (:func:`cdqn.agents.base.explore_ahead`); it depends on nothing but each member's generator.
