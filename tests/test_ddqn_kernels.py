@@ -22,6 +22,23 @@ epsilon is 1.2e-7, and the sums over samples and hidden units run in another ord
 torch's."""
 
 
+def fast_and_autograd_agents(
+    n_obs: int, n_actions: int, dtype: str, lr: float
+) -> tuple[QNetwork, list[DDQNAgent]]:
+    """A width-120 network and two Double DQN agents on copies of it: the fast path, then
+    autograd."""
+    torch.manual_seed(1)
+    base = QNetwork(NetworkSpec(n_obs, n_actions, 120, dtype))
+    cfg = ControllerConfig(
+        name="ddqn", batch_size=8, buffer_size=500, learning_starts=10, target_update=15
+    )
+    agents = []
+    for fast in (True, False):
+        train = TrainConfig(lr=lr, fast_path=fast, eps_start=0.0, eps_end=0.0)
+        agents.append(DDQNAgent(copy.deepcopy(base), cfg, train, np.random.default_rng(5)))
+    return base, agents
+
+
 @pytest.mark.parametrize(
     ("dtype", "n_obs", "n_actions"),
     [("float64", 4, 2), ("float32", 4, 2), ("float64", 6, 3), ("float32", 3, 1)],
@@ -30,15 +47,7 @@ def test_minibatch_step_equals_autograd(dtype: str, n_obs: int, n_actions: int) 
     """Double DQN with the fast path and with torch autograd take the same steps (losses,
     networks after 60 updates with minibatch steps and target copies), in the network's
     dtype."""
-    torch.manual_seed(1)
-    base = QNetwork(NetworkSpec(n_obs, n_actions, 120, dtype))
-    cfg = ControllerConfig(
-        name="ddqn", batch_size=8, buffer_size=500, learning_starts=10, target_update=15
-    )
-    agents = []
-    for fast in (True, False):
-        train = TrainConfig(lr=1e-3, fast_path=fast, eps_start=0.0, eps_end=0.0)
-        agents.append(DDQNAgent(copy.deepcopy(base), cfg, train, np.random.default_rng(5)))
+    base, agents = fast_and_autograd_agents(n_obs, n_actions, dtype, lr=1e-3)
     rel_loss, rtol, atol = TOLERANCE[dtype]
     gen = np.random.default_rng(2)
     obs = gen.normal(size=n_obs)

@@ -5,16 +5,13 @@ autograd computes from the definitions."""
 
 from __future__ import annotations
 
-import copy
-
 import numpy as np
 import pytest
 import torch
 from numba import njit
 
-from cdqn.agents.ddqn import DDQNAgent
 from cdqn.bench import nonzero_inputs
-from cdqn.config import ControllerConfig, EnvConfig, TrainConfig
+from cdqn.config import EnvConfig
 from cdqn.ddqn_kernels import BLOCK, kernels, sparse_learn, sparse_members
 from cdqn.envs import make_env
 from cdqn.network import (
@@ -28,6 +25,7 @@ from cdqn.network import (
     output_row,
     sgd_row,
 )
+from tests.test_ddqn_kernels import fast_and_autograd_agents
 from tests.test_ddqn_population import BASE as DDQN_BASE
 from tests.test_ddqn_population import _population, _single
 
@@ -159,15 +157,7 @@ def test_minibatch_step_over_nonzero_inputs_equals_autograd(kind: str, dtype: st
     """Double DQN's minibatch steps on inputs with zeros (taken over their nonzero inputs)
     and torch autograd's leave the same losses and networks after 60 updates."""
     n_obs, n_actions = (40, 3) if kind != "mixed" else (60, 2)
-    torch.manual_seed(1)
-    base = QNetwork(NetworkSpec(n_obs, n_actions, 120, dtype))
-    cfg = ControllerConfig(
-        name="ddqn", batch_size=8, buffer_size=500, learning_starts=10, target_update=15
-    )
-    agents = []
-    for fast in (True, False):
-        train = TrainConfig(lr=1e-2, fast_path=fast, eps_start=0.0, eps_end=0.0)
-        agents.append(DDQNAgent(copy.deepcopy(base), cfg, train, np.random.default_rng(5)))
+    base, agents = fast_and_autograd_agents(n_obs, n_actions, dtype, lr=1e-2)
     rel_loss, rtol, atol = {"float64": (1e-9, 1e-10, 1e-12), "float32": (2e-4, 2e-4, 2e-6)}[dtype]
     gen = np.random.default_rng(2)
     obs = _input(kind, n_obs, gen)
