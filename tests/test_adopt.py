@@ -7,6 +7,7 @@ real ``python -m cdqn.*`` in subprocesses, on a real SQLite store."""
 from __future__ import annotations
 
 import json
+import re
 import tempfile
 from pathlib import Path
 
@@ -21,7 +22,7 @@ from omegaconf import OmegaConf
 from cdqn.cli import EXIT_CONFIG, check_overrides
 from cdqn.config import EnvConfig
 from cdqn.envs import adopt, env_label, env_presets, env_sizes, make_env
-from cdqn.envs.adopt import command_line
+from cdqn.envs.adopt import GENERIC, command_line, shipped_weights
 from cdqn.network import NetworkSpec, QNetwork
 from cdqn.ntk_bounds import measured_box
 from cdqn.training.run import run
@@ -34,6 +35,8 @@ from tests.test_population import BASE, _population, _single
 TOY = "tests.toy_envs:CdqnChain-v0"
 """Registered on import of ``tests.toy_envs``: cap 50 steps, reward threshold −12."""
 LABEL = "CdqnChain-v0"
+KWARGS_LABEL = f"{LABEL}.step_reward--2.0"
+"""The label of the toy id with the constructor argument ``step_reward=-2.0``."""
 NO_CAP = "tests.toy_envs:CdqnChainNoCap-v0"
 SMALL = ["network=small", "train.episodes=3", "train.progress=false"]
 
@@ -49,9 +52,10 @@ def test_an_id_no_preset_names_is_adopted_once() -> None:
     assert adopted.box_source == "measured"  # weights=cartpole are another id's
     assert adopted.change == (
         f"env.id={TOY} is not env=cartpole's CartPole-v1: named {LABEL}, episode cap 50 (its "
-        "registration), solve threshold -12.0 (its registration), NTK box measured "
-        "(weights=cartpole are CartPole-v1's)"
+        "registration), solve threshold -12.0 (its registration), weights=generic in place of "
+        "CartPole-v1's weights=cartpole, NTK box measured (weights=generic have none)"
     )
+    assert adopted.cfg.weights == shipped_weights(GENERIC)
     assert cfg.env.name == "cartpole" and cfg.env.max_episode_steps == 200  # a new object
     again = adopt(adopted.cfg)
     assert again.change is None and again.cfg == adopted.cfg
@@ -68,6 +72,32 @@ def test_labels_are_safe_in_file_names() -> None:
     assert env_label(TOY) == LABEL
     assert env_label("ALE/Pong-v5") == "ALE-Pong-v5"
     assert env_label("CartPole-v1") == "CartPole-v1"
+    assert env_label("CartPole-v1", {}, cap=500) == "CartPole-v1-cap500"
+
+
+def test_constructor_arguments_make_the_label_distinct_and_deterministic() -> None:
+    """Keys sorted, values as on the command line; a value that is not short safe text (a
+    list, a string with spaces) by its hash."""
+    lake = "FrozenLake-v1"
+    slip = {"map_name": "8x8", "is_slippery": False}
+    assert env_label(lake, slip) == "FrozenLake-v1.is_slippery-false.map_name-8x8"
+    assert env_label(lake, dict(reversed(slip.items()))) == env_label(lake, slip)
+    assert env_label(lake, {"map_name": "4x4"}) == "FrozenLake-v1.map_name-4x4"
+    assert env_label(TOY, {"step_reward": -2.0, "length": 4}) == (
+        f"{LABEL}.length-4.step_reward--2.0"
+    )
+    assert env_label("CartPole-v1", {"x": None}, cap=500) == "CartPole-v1-cap500.x-null"
+    desc = env_label(lake, {"desc": ["SF", "HG"]})
+    assert desc != env_label(lake, {"desc": ["SF", "GH"]})
+    assert re.fullmatch(r"FrozenLake-v1\.desc-[0-9a-f]{8}", desc)
+    assert env_label(lake, {"render_mode": "a b"}) != env_label(lake, {"render_mode": "a_b"})
+    names = set()
+    for kwargs in ({}, {"map_name": "8x8"}, {"map_name": "8x8", "is_slippery": False}):
+        over = [f"+env.kwargs.{k}={str(v).lower()}" for k, v in kwargs.items()]
+        name = adopt(compose_config(["env.id=FrozenLake-v1", *over])).conf.env.name
+        assert name == env_label(lake, kwargs) and re.fullmatch(r"[A-Za-z0-9_.+-]+", name)
+        names.add(name)
+    assert len(names) == 3
 
 
 @pytest.mark.parametrize("env", sorted(env_presets()))
@@ -81,6 +111,68 @@ def test_presets_are_left_as_they_are_and_hash_as_before(env: str) -> None:
     assert config_hash(tree) == config_hash(cfg)
     given = compose_config([f"env={env}", "+env.kwargs.render_mode=rgb_array"])
     assert config_hash(given) != config_hash(cfg)
+
+
+# --- the weights of an environment without a preset ------------------------------------------
+
+
+def test_an_adopted_id_learns_with_the_generic_weights_and_keeps_what_the_run_sets() -> None:
+    """Another environment's shipped preset, composed by default (``weights: ${env}``), is
+    replaced by ``weights=generic``; values of ``weights.*`` set for the run stay, given on
+    the command line (even at the replaced preset's value) or set in a configuration
+    composed in code."""
+    generic = shipped_weights(GENERIC)
+    assert generic.paper.hinf_f is None  # no environment's research-code gains
+    given = [
+        f"env.id={TOY}",
+        "controller=hinf_f",
+        "weights.hinf_f.w_delta=0.5",
+        "weights.target.step_scale=[0.3,0.4]",
+        "weights.paper.hinf_f=[-0.379,2.82,0.1937]",  # cartpole's research-code gains
+    ]
+    with command_line(given):
+        adopted = adopt(compose_config(given))
+    w = adopted.conf.weights
+    assert w.name == GENERIC and adopted.box_source == "measured"
+    assert (w.hinf_f.w_delta, w.target.step_scale) == (0.5, [0.3, 0.4])  # the run's
+    assert w.paper.hinf_f == [-0.379, 2.82, 0.1937]
+    assert w.target.gamma_eff == list(generic.target.gamma_eff)  # generic's
+    cfg = compose_config([f"env.id={TOY}", "weights.replay.repeats=4"])  # composed in code
+    adopted = adopt(cfg)
+    assert adopted.conf.weights.replay.repeats == 4 and adopted.conf.weights.paper.hinf_f is None
+    assert OmegaConf.masked_copy(adopted.cfg.weights, ["target", "hinf_f", "hinf", "h2"]) == (
+        OmegaConf.masked_copy(generic, ["target", "hinf_f", "hinf", "h2"])
+    )
+
+
+def test_a_weights_preset_chosen_for_the_run_is_kept(tmp_path: Path) -> None:
+    """``weights=cartpole`` on the command line (its box measured) and a user's own preset
+    (its box kept) are the run's choice; a preset's own id keeps its preset."""
+    chosen = [f"env.id={TOY}", "weights=cartpole"]
+    with command_line(chosen):
+        adopted = adopt(compose_config(chosen))
+    assert adopted.conf.weights.name == "cartpole" and adopted.box_source == "measured"
+    assert adopted.change is not None and "weights=generic" not in adopted.change
+    (tmp_path / "weights").mkdir()
+    mine = OmegaConf.merge(shipped_weights("cartpole"), {"name": "mine"})
+    mine.target.gamma_eff = [0.5, 0.6]
+    OmegaConf.save(mine, tmp_path / "weights" / "mine.yaml")
+    own = [f"env.id={TOY}", "weights=mine", f"hydra.searchpath=[file://{tmp_path}]"]
+    for line in ((), own):  # on the command line or composed in code
+        with command_line(list(line)):
+            adopted = adopt(compose_config(own))
+        assert adopted.conf.weights.name == "mine" and adopted.box_source == "config"
+        assert adopted.conf.weights.target.gamma_eff == [0.5, 0.6]
+    for cap in (["env=cartpole", "env.max_episode_steps=500"], ["env=acrobot"]):
+        adopted = adopt(compose_config(cap))
+        assert adopted.conf.weights.name == cap[0].removeprefix("env=")
+        assert adopted.box_source == "config"
+
+
+def test_generic_weights_on_a_presets_id_measure_their_box() -> None:
+    adopted = adopt(compose_config(["env=cartpole", "weights=generic"]))
+    assert adopted.box_source == "measured" and adopted.conf.env.name == "cartpole"
+    assert adopted.change == "NTK box measured (weights=generic have none)"
 
 
 # --- module:Id, kwargs, refusals -------------------------------------------------------------
@@ -341,7 +433,7 @@ def store(tmp_path_factory: pytest.TempPathFactory) -> Store:
         "cdqn.train", [*common, "controller=hinf_f", "+env.kwargs.step_reward=-2.0"], st.folder
     )
     assert single.returncode == 0, single.stderr
-    assert f"named {LABEL}, episode cap 50" in single.stdout + single.stderr
+    assert f"named {KWARGS_LABEL}, episode cap 50" in single.stdout + single.stderr
     multi = run_cli(
         "cdqn.train",
         ["-m", *common, "controller=none", "seed=10", "train.population=1,2"],
@@ -351,19 +443,22 @@ def store(tmp_path_factory: pytest.TempPathFactory) -> Store:
     return st
 
 
-def _assert_adopted(run, controller: str) -> None:
+def _assert_adopted(run, controller: str, label: str = LABEL) -> None:
     tags, params = run.data.tags, run.data.params
-    assert (tags["env"], tags["env_id"], tags["controller"]) == (LABEL, TOY, controller)
-    assert params["env.name"] == LABEL
+    assert (tags["env"], tags["env_id"], tags["controller"]) == (label, TOY, controller)
+    assert params["env.name"] == label
     assert params["env.max_episode_steps"] == "50"  # the registration's, not CartPole's 200
     assert params["env.solve_threshold"] == "-12.0"  # not CartPole's 195
     assert params["controller.synthesis.ntk_bounds"] == "measured"
+    assert params["weights.name"] == GENERIC  # not weights=cartpole's CartPole target
+    target = shipped_weights(GENERIC).target
+    assert params["weights.target.gamma_eff"] == str(list(target.gamma_eff))
 
 
 @pytest.mark.slow
 def test_single_run_is_the_environments_with_its_kwargs(store: Store) -> None:
-    run_ = store.run(f"{LABEL}-hinf_f-w64-e3-s0")
-    _assert_adopted(run_, "hinf_f")
+    run_ = store.run(f"{KWARGS_LABEL}-hinf_f-w64-e3-s0")
+    _assert_adopted(run_, "hinf_f", KWARGS_LABEL)
     assert run_.data.params["env.kwargs.step_reward"] == "-2.0"
     design = json.loads(store.artifact(run_.info.run_id, "design/controller.json").read_text())
     assert design["box_source"] == "measured"
@@ -377,7 +472,7 @@ def test_multirun_and_population_runs_are_the_environments(store: Store) -> None
     runs = runs_of(store.uri)
     names = sorted(r.info.run_name for r in runs)
     assert names == sorted(
-        [f"{LABEL}-hinf_f-w64-e3-s0", *[f"{LABEL}-none-w64-e3-s{s}" for s in (10, 10, 11)]]
+        [f"{KWARGS_LABEL}-hinf_f-w64-e3-s0", *[f"{LABEL}-none-w64-e3-s{s}" for s in (10, 10, 11)]]
     )
     members = [r for r in runs if "population" in r.data.tags]
     assert sorted(r.data.tags["seed"] for r in members) == ["10", "11"]
@@ -389,7 +484,7 @@ def test_multirun_and_population_runs_are_the_environments(store: Store) -> None
 
 @pytest.mark.slow
 def test_evaluate_builds_the_stored_environment(store: Store) -> None:
-    run_id = store.run(f"{LABEL}-hinf_f-w64-e3-s0").info.run_id
+    run_id = store.run(f"{KWARGS_LABEL}-hinf_f-w64-e3-s0").info.run_id
     args = [f"run_id={run_id}", "episodes=3", f"tracking.uri={store.uri}"]
     proc = run_cli("cdqn.evaluate", args, store.folder)
     assert proc.returncode == 0, proc.stderr
@@ -407,6 +502,11 @@ def test_synthesize_designs_on_the_environments_own_box(tmp_path: Path) -> None:
     assert f"named {LABEL}, episode cap 50" in proc.stdout + proc.stderr
     design = json.loads((tmp_path / "out" / "controller.json").read_text())
     assert design["box_source"] == "measured"
+    target = shipped_weights(GENERIC).target  # as cdqn.train designs it
+    assert design["learning_target"]["target"] == {
+        "gamma_eff": list(target.gamma_eff),
+        "step_scale": list(target.step_scale),
+    }
 
 
 @pytest.mark.slow
@@ -444,37 +544,55 @@ def test_resume_continues_the_environments_run(
 
 @pytest.mark.slow
 def test_tune_studies_the_environment_as_itself(tmp_path: Path) -> None:
-    """``python -m cdqn.tune env.id=<module>:<Id>``: the study, its preset, its trial and
-    member runs are the environment's (label, cap, threshold), every design is certified on
-    a box measured on the environment's own network and observation map, and the preset
-    trains that environment again."""
+    """``python -m cdqn.tune env.id=<module>:<Id> +env.kwargs.<k>=<v>``: the study, its preset,
+    its trial and member runs are the environment's (label with its constructor argument, cap,
+    threshold), the search starts from the generic weights (the target is its own dimension),
+    every design is certified on a box measured on the environment's own network and
+    observation map, and the preset, named by the label, trains that environment again."""
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
-    args = [f"env.id={TOY}", "controller=hinf_f", "network=small", f"tracking.uri={uri}",
-            f"tune.storage=sqlite:///{tmp_path / 'optuna.db'}",
+    label = f"{LABEL}.length-6"
+    args = [f"env.id={TOY}", "+env.kwargs.length=6", "controller=hinf_f", "network=small",
+            f"tracking.uri={uri}", f"tune.storage=sqlite:///{tmp_path / 'optuna.db'}",
             f"tune.preset_dir={tmp_path / 'presets'}", "tune.trials=1", "tune.seeds=2",
             "tune.episodes=4", "tune.eval_seeds=0", "tune.pruner.kind=none",
             f"controller.synthesis.cache_dir={tmp_path / 'designs'}"]  # fmt: skip
     proc = run_cli("cdqn.tune", args, tmp_path)
     assert proc.returncode == 0, proc.stderr
     out = proc.stdout + proc.stderr
-    assert f"named {LABEL}, episode cap 50" in out and f"study {LABEL}-hinf_f" in out
+    assert f"named {label}, episode cap 50" in out and f"study {label}-hinf_f" in out
+    assert "weights=generic in place of CartPole-v1's weights=cartpole" in out
     assert "study cartpole" not in out and "(cartpole," not in out  # no member named so
     client = MlflowClient(uri)
     exp = client.get_experiment_by_name("cdqn-tune")
     runs = client.search_runs([exp.experiment_id])
     parent = next(r for r in runs if r.data.tags.get("kind") == "tune")
-    assert parent.info.run_name == f"tune-{LABEL}-hinf_f" and parent.data.tags["env"] == LABEL
+    assert parent.info.run_name == f"tune-{label}-hinf_f" and parent.data.tags["env"] == label
     members = [r for r in runs if "population" in r.data.tags]
     names = sorted(r.info.run_name for r in members)
     assert [n.rsplit("-", 1)[1] for n in names] == ["s100", "s101"]
-    assert all(n.startswith(f"{LABEL}-hinf_f-w64-e4") for n in names)
+    assert all(n.startswith(f"{label}-hinf_f-w64-e4") for n in names)
     for r in members:
-        assert (r.data.tags["env"], r.data.tags["env_id"]) == (LABEL, TOY)
+        assert (r.data.tags["env"], r.data.tags["env_id"]) == (label, TOY)
         assert r.data.params["env.max_episode_steps"] == "50"
         assert r.data.params["env.solve_threshold"] == "-12.0"
+        assert r.data.params["weights.name"] == GENERIC
         # the box measured once for the study, written into the design's configuration
         assert r.data.params["controller.synthesis.ntk_bounds"] == "config"
-    preset = tmp_path / "presets" / "weights" / f"tuned_{LABEL}-hinf_f.yaml"
+    preset = tmp_path / "presets" / "weights" / f"tuned_{label}-hinf_f.yaml"
     tuned = OmegaConf.load(preset)
-    assert (tuned.env.id, tuned.env.name) == (TOY, LABEL)
+    assert (tuned.env.id, tuned.env.name, tuned.env.kwargs) == (TOY, label, {"length": 6})
     assert (tuned.env.max_episode_steps, tuned.env.solve_threshold) == (50, -12.0)
+    generic = shipped_weights(GENERIC)
+    assert tuned.weights.h2 == generic.h2 and tuned.weights.paper == generic.paper
+    assert tuned.weights.hinf_f.w_delta == generic.hinf_f.w_delta
+    again = run_cli("cdqn.train", [f"weights=tuned_{label}-hinf_f", "controller=hinf_f",
+                                   "network=small", "train.episodes=2", "train.progress=false",
+                                   f"hydra.searchpath=[file://{tmp_path / 'presets'}]",
+                                   f"tracking.uri=sqlite:///{tmp_path / 'train.db'}",
+                                   f"controller.synthesis.cache_dir={tmp_path / 'designs'}"],
+                    tmp_path)  # fmt: skip
+    assert again.returncode == 0, again.stderr
+    (trained,) = runs_of(f"sqlite:///{tmp_path / 'train.db'}")
+    assert trained.info.run_name == f"{label}-hinf_f-w64-e2-s0"
+    assert trained.data.tags["env"] == label and trained.data.params["env.kwargs.length"] == "6"
+    assert trained.data.params["weights.name"] == f"tuned_{label}-hinf_f"

@@ -1,32 +1,42 @@
 """Adoption: a composed configuration made a run *of its environment*, once per entry point.
 
 Every command (``cdqn.train`` for a single run, a population or a multirun job,
-``cdqn.synthesize``, ``cdqn.evaluate``, ``cdqn.bench``, the check before Hydra starts) calls
-:func:`adopt` on its configuration before anything is built, and reads the result.
+``cdqn.synthesize``, ``cdqn.tune``, ``cdqn.evaluate``, ``cdqn.bench``, the check before Hydra
+starts) calls :func:`adopt` on its configuration before anything is built, and reads the
+result.
 
 The presets of ``conf/env/`` name one gymnasium id each, with its episode cap and solve
 threshold.  When ``env.id`` is not the id of the preset named ``env.name``
 (``env=cartpole env.id=Acrobot-v1``, or the default preset with ``env.id=<module>:<Id>``):
 
 * ``env.name`` becomes the id's label (:func:`cdqn.envs.make.env_label`: the id without
-  its module, ``/`` → ``-``), so the run is named ``<label>-<controller>-s<seed>``, tagged
-  ``env=<label>`` and grouped under it by the analysis and the tuner;
+  its module, ``/`` → ``-``, then ``.<key>-<value>`` per constructor argument ``env.kwargs``,
+  keys sorted), so the run is named ``<label>-<controller>-s<seed>``, tagged ``env=<label>``
+  and grouped under it by the analysis and the tuner;
 * ``env.max_episode_steps`` and ``env.solve_threshold`` come from the id's registration
   (``max_episode_steps``, ``reward_threshold``) unless the command line gives them, or
   they were set to something other than the preset's values (a configuration composed in
   code); an id registered without a ``reward_threshold`` has no solve threshold (null: no
-  run is judged solved) unless ``env.solve_threshold`` gives one.
+  run is judged solved) unless ``env.solve_threshold`` gives one;
+* a ``weights`` preset shipped for an environment preset of another id — the one
+  ``weights: ${env}`` composes by default — is replaced by ``weights=generic``
+  (``conf/weights/generic.yaml``: the research code's design weights and a learning target
+  chosen for environments without a preset, docs/research/learning.md), keeping every
+  ``weights.*`` value set for the run (given on the command line, or unlike the replaced
+  preset's).  A preset named on the command line (``weights=cartpole``) or one of the user's
+  own (not shipped, e.g. a tuned preset) is kept.
 
 A preset's own id with another episode cap (``env=cartpole env.max_episode_steps=500``) is
 another task: it is labelled by the id (``CartPole-v1``, or ``CartPole-v1-cap300`` for a cap
 its registration does not have) and, at the registration's cap, takes its threshold unless one
-was set.
+was set; it keeps the preset's weights.
 
-For a run of an id no preset names (an adopted one, or one named by the user),
-``controller.synthesis.ntk_bounds`` becomes ``measured`` when the selected ``weights``
-preset belongs to an environment preset of another id: a robust design is never built on
-another environment's NTK box.  A weights preset of the user's own (not shipped) is theirs
-to choose and keeps its box.  A run of a preset's own id is left as it is.
+``controller.synthesis.ntk_bounds`` becomes ``measured`` when the weights carry no box of this
+environment: ``weights=generic`` (on any id), or, for a run of an id no preset names, a
+weights preset of an environment preset of another id — unless ``weights.theta_bounds`` was
+set for the run.  A robust design is never built on another environment's NTK box.  A weights
+preset of the user's own keeps its box.  A run of a preset's own id with its own weights is
+left as it is.
 
 Refused, one line each: an id that cannot be imported or is not registered, and an
 environment registered without an episode cap when ``env.max_episode_steps`` is not given
@@ -47,10 +57,13 @@ import yaml
 from gymnasium.envs.registration import EnvSpec
 from omegaconf import DictConfig, OmegaConf, read_write
 
-from cdqn.config import CONF_DIR, Config, ConfigError, EnvConfig, validate
+from cdqn.config import CONF_DIR, Config, ConfigError, EnvConfig, WeightsConfig, validate
 from cdqn.envs.make import env_label, registration
 
 _COMMAND_LINE: ContextVar[tuple[str, ...] | None] = ContextVar("cdqn_overrides", default=None)
+GENERIC = "generic"
+"""The shipped weights preset of an environment without one of its own
+(``conf/weights/generic.yaml``)."""
 BOX_SOURCES = ("config", "measured")
 """Where the robust designs' NTK box comes from (``controller.synthesis.ntk_bounds``)."""
 
@@ -74,22 +87,25 @@ class Adopted:
 
 
 def adopt(cfg: DictConfig) -> Adopted:
-    """``cfg`` as a run of its environment (module docstring); idempotent:
-    ``adopt(adopt(cfg).cfg).change is None``.  Raises :class:`ConfigError` for an id that
-    cannot be made, an environment without an episode cap, or any value
+    """``cfg`` as a run of its environment (module docstring); idempotent under the same
+    command line: ``adopt(adopt(cfg).cfg).change is None``.  Raises :class:`ConfigError` for
+    an id that cannot be made, an environment without an episode cap, or any value
     :func:`cdqn.config.validate` refuses."""
     out = copy.deepcopy(cfg)
     env = out.env
     spec = registration(str(env.id))  # imports <module>: of <module>:<Id>
     preset = env_presets().get(str(env.name))
     changed: list[str] = []
-    given = _given(out)
+    overrides = _overrides()
+    given = _given(out, overrides)
     with read_write(out):
         if preset is not None and preset.id != env.id:
             changed += _take_registration(env, preset, spec, given)
         elif preset is not None and env.max_episode_steps != preset.max_episode_steps:
             changed += _other_cap(env, preset, spec, given)
         if preset is None or preset.id != env.id:
+            changed += _weights_of_its_own(out, given, "weights" in _keys(overrides))
+        if preset is None or preset.id != env.id or out.weights.name == GENERIC:
             changed += _box_of_its_own(out)
     if env.max_episode_steps is None and spec.max_episode_steps is None:
         raise ConfigError(
@@ -99,9 +115,10 @@ def adopt(cfg: DictConfig) -> Adopted:
     conf: Config = OmegaConf.to_object(out)
     validate(conf)
     head = ""
-    if preset is not None:
-        head = (f"env.id={env.id} is not env={preset.name}'s {preset.id}: " if preset.id != env.id
-                else f"env={preset.name} at another episode cap: ")  # fmt: skip
+    if preset is not None and preset.id != env.id:
+        head = f"env.id={env.id} is not env={preset.name}'s {preset.id}: "
+    elif preset is not None and env.max_episode_steps != preset.max_episode_steps:
+        head = f"env={preset.name} at another episode cap: "
     return Adopted(out, conf, head + ", ".join(changed) if changed else None)
 
 
@@ -136,19 +153,32 @@ def command_line(overrides: list[str]) -> Iterator[None]:
         _COMMAND_LINE.reset(token)
 
 
-def _given(cfg: DictConfig) -> frozenset[str]:
-    """The keys of ``env.*`` the command line gives their present value: those of
-    :func:`command_line`, else those of the running Hydra job's overrides (none for a
-    configuration composed in code)."""
+def _overrides() -> tuple[str, ...]:
+    """The command line: that of :func:`command_line`, else the running Hydra job's overrides
+    (none for a configuration composed in code)."""
     overrides = _COMMAND_LINE.get()
     if overrides is None:
         from hydra.core.hydra_config import HydraConfig
 
         overrides = tuple(HydraConfig.get().overrides.task) if HydraConfig.initialized() else ()
+    return overrides
+
+
+def _keys(overrides: tuple[str, ...]) -> frozenset[str]:
+    """The keys (and config groups) the command line sets."""
+    return frozenset(text.lstrip("+~").partition("=")[0] for text in overrides)
+
+
+def _given(cfg: DictConfig, overrides: tuple[str, ...]) -> frozenset[str]:
+    """The keys of ``env.*`` and ``weights.*`` the command line gives their present value."""
     out = set()
     for text in overrides:
         key, eq, value = text.lstrip("+~").partition("=")
-        if eq and key.startswith("env.") and OmegaConf.select(cfg, key) == _value(value):
+        if (
+            eq
+            and key.startswith(("env.", "weights."))
+            and OmegaConf.select(cfg, key) == _value(value)
+        ):
             out.add(key)
     return frozenset(out)
 
@@ -166,7 +196,7 @@ def _take_registration(
     """Name, cap and threshold of ``env.id`` (registered as ``spec``) in place of
     ``preset``'s unless given; what changed."""
     cap, threshold = spec.max_episode_steps, spec.reward_threshold
-    label = env_label(str(env.id))
+    label = env_label(str(env.id), _kwargs(env))
     env.name = label
     changed = [f"named {label}"]
     if env.max_episode_steps == preset.max_episode_steps and "env.max_episode_steps" not in given:
@@ -189,7 +219,7 @@ def _other_cap(
     not the 200-step ``cartpole``): labelled by the id, with ``-cap<N>`` unless the cap is the
     registration's, whose solve threshold it then takes unless one was set."""
     cap = env.max_episode_steps
-    label = env_label(str(env.id)) + ("" if cap == spec.max_episode_steps else f"-cap{cap}")
+    label = env_label(str(env.id), _kwargs(env), None if cap == spec.max_episode_steps else cap)
     env.name = label
     changed = [f"named {label} (episode cap {cap}, not {preset.name}'s {preset.max_episode_steps})"]
     same = env.solve_threshold == preset.solve_threshold and "env.solve_threshold" not in given
@@ -199,16 +229,62 @@ def _other_cap(
     return changed
 
 
-def _box_of_its_own(cfg: DictConfig) -> list[str]:
-    """``ntk_bounds=measured`` when the box is another environment's: the weights preset
-    belongs to an environment preset of another id and ``weights.theta_bounds`` is still that
-    preset's box (a box set for this run, e.g. one a study measured, stays)."""
-    weights_env = env_presets().get(str(cfg.weights.name))
-    syn = cfg.controller.synthesis
-    if weights_env is None or weights_env.id == cfg.env.id or syn.ntk_bounds == "measured":
+def _kwargs(env: DictConfig) -> dict[str, object]:
+    """``env.kwargs`` as plain values."""
+    kwargs = OmegaConf.to_container(env.kwargs, resolve=True) if env.get("kwargs") else {}
+    assert isinstance(kwargs, dict)
+    return {str(k): v for k, v in kwargs.items()}
+
+
+def shipped_weights(name: str) -> DictConfig:
+    """The shipped weights preset ``conf/weights/<name>.yaml`` over the schema's defaults, as
+    composing ``weights=<name>`` gives it."""
+    node = OmegaConf.load(CONF_DIR / "weights" / f"{name}.yaml")
+    return OmegaConf.merge(OmegaConf.structured(WeightsConfig), node)
+
+
+def _leaves(node: object, prefix: str) -> dict[str, object]:
+    """The values of a plain tree by dotted key (a list is one value)."""
+    if not isinstance(node, dict):
+        return {prefix: node}
+    out: dict[str, object] = {}
+    for key, value in node.items():
+        out.update(_leaves(value, f"{prefix}.{key}"))
+    return out
+
+
+def _weights_of_its_own(cfg: DictConfig, given: frozenset[str], chosen: bool) -> list[str]:
+    """``weights=generic`` in place of another environment's shipped weights preset, unless
+    the command line chose that preset (``weights=cartpole``).  A value of ``weights.*`` set
+    for this run (on the command line, or unlike the preset's) is kept over generic's."""
+    name = str(cfg.weights.name)
+    weights_env = env_presets().get(name)
+    if weights_env is None or weights_env.id == cfg.env.id or chosen:
         return []
-    shipped = OmegaConf.load(CONF_DIR / "weights" / f"{cfg.weights.name}.yaml").theta_bounds
+    own = _leaves(OmegaConf.to_container(cfg.weights, resolve=True), "weights")
+    shipped = _leaves(OmegaConf.to_container(shipped_weights(name), resolve=True), "weights")
+    generic = shipped_weights(GENERIC)
+    for key, value in own.items():
+        if key != "weights.name" and (key in given or value != shipped.get(key)):
+            OmegaConf.update(generic, key.removeprefix("weights."), value, merge=False)
+    cfg.weights = generic
+    return [f"weights={GENERIC} in place of {weights_env.id}'s weights={name}"]
+
+
+def _box_of_its_own(cfg: DictConfig) -> list[str]:
+    """``ntk_bounds=measured`` when the box is not this environment's: the weights preset is
+    :data:`GENERIC` or belongs to an environment preset of another id, and
+    ``weights.theta_bounds`` is still that preset's box (a box set for this run, e.g. one a
+    study measured, stays)."""
+    name = str(cfg.weights.name)
+    weights_env = env_presets().get(name)
+    syn = cfg.controller.synthesis
+    foreign = name == GENERIC or (weights_env is not None and weights_env.id != cfg.env.id)
+    if not foreign or syn.ntk_bounds == "measured":
+        return []
+    shipped = shipped_weights(name).theta_bounds
     if OmegaConf.to_container(cfg.weights.theta_bounds) != OmegaConf.to_container(shipped):
         return []
     syn.ntk_bounds = "measured"
-    return [f"NTK box measured (weights={cfg.weights.name} are {weights_env.id}'s)"]
+    whose = "have none" if weights_env is None else f"are {weights_env.id}'s"
+    return [f"NTK box measured (weights={name} {whose})"]

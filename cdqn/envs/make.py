@@ -9,7 +9,11 @@ Every problem is one :class:`ConfigError` line naming the key, the value and wha
 from __future__ import annotations
 
 import difflib
+import hashlib
 import importlib
+import json
+import re
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -55,9 +59,39 @@ class EnvId:
         return self.name.replace("/", "-")
 
 
-def env_label(env_id: str) -> str:
-    """The label of ``env.id`` (:attr:`EnvId.label`)."""
-    return EnvId.parse(env_id).label
+SAFE_TEXT = re.compile(r"[A-Za-z0-9_+.-]{1,32}")
+"""Text a label carries as it is: safe in a Hydra override value, a file name, an MLflow run
+name or tag and an Optuna study name."""
+
+
+def env_label(env_id: str, kwargs: Mapping[str, Any] | None = None, cap: int | None = None) -> str:
+    """The label of a run's environment (``env.name`` of an adopted id):
+    ``<id>[-cap<N>][.<key>-<value>...]``.
+
+    ``<id>`` is :attr:`EnvId.label`; ``-cap<N>`` an episode cap its registration does not
+    have; then one ``.<key>-<value>`` per constructor argument (``env.kwargs``), keys sorted:
+    ``FrozenLake-v1.is_slippery-false.map_name-8x8``, ``CdqnChain-v0.step_reward--2.0``.  A value
+    is written as on the command line (``true``, ``null``, ``-2.0``, ``8x8``) when that text is
+    at most 32 characters of ``[A-Za-z0-9_+.-]``; any other (a list, a dict, a string with
+    spaces) as the first 8 hex digits of the SHA-256 of its JSON (``desc-3f9a0c1e``).  The label
+    is then safe wherever it is used: ``weights=tuned_<label>-<agent>``, file names, MLflow
+    run names and tags, Optuna study names."""
+    label = EnvId.parse(env_id).label + ("" if cap is None else f"-cap{cap}")
+    for key in sorted(kwargs or {}):
+        label += f".{_label_text(key)}-{_label_text(kwargs[key])}"  # type: ignore[index]
+    return label
+
+
+def _label_text(value: Any) -> str:
+    """``value`` as a label writes it (:func:`env_label`)."""
+    if isinstance(value, bool) or value is None:
+        text = {True: "true", False: "false", None: "null"}[value]
+    else:
+        text = str(value) if isinstance(value, (int, float, str)) else ""
+    if SAFE_TEXT.fullmatch(text):
+        return text
+    plain = json.dumps(value, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(plain.encode()).hexdigest()[:8]
 
 
 def registration(env_id: str) -> EnvSpec:
