@@ -593,6 +593,7 @@ def test_tune_studies_the_environment_as_itself(tmp_path: Path) -> None:
                     tmp_path)  # fmt: skip
     assert again.returncode == 0, again.stderr
     (trained,) = runs_of(f"sqlite:///{tmp_path / 'train.db'}")
-    assert trained.info.run_name == f"{label}-hinf_f-w64-e2-s0"
+    name = trained.info.run_name  # the tuned α in it: <label>-hinf_f-w64-e2-lr<α>-s0
+    assert name.startswith(f"{label}-hinf_f-w64-e2-lr") and name.endswith("-s0")
     assert trained.data.tags["env"] == label and trained.data.params["env.kwargs.length"] == "6"
     assert trained.data.params["weights.name"] == f"tuned_{label}-hinf_f"

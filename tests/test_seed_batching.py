@@ -95,7 +95,7 @@ def test_job_shape_of_real_configurations() -> None:
     assert job_shape(compose_config(["controller=hinf_f"])) == JobShape(True, "hinf_f")
     assert job_shape(compose_config(["train.fast_path=false"])) == JobShape(False, "hinf")
     assert job_shape(compose_config(["train.population=3"])) == JobShape(False, "hinf")
-    # Acrobot's id on CartPole's weights: each seed's design on its own measured NTK box
+    # Acrobot's id under env=cartpole (weights=generic): each seed's design on its own measured box
     acrobot = compose_config(["env.id=Acrobot-v1", "controller=hinf_f"])
     assert job_shape(acrobot) == JobShape(False, "hinf_f")
     # the gain-scheduled H2 design is certified on no box: its seeds batch
