@@ -239,8 +239,11 @@ def _kwargs(env: DictConfig) -> dict[str, object]:
 def shipped_weights(name: str) -> DictConfig:
     """The shipped weights preset ``conf/weights/<name>.yaml`` over the schema's defaults, as
     composing ``weights=<name>`` gives it."""
-    node = OmegaConf.load(CONF_DIR / "weights" / f"{name}.yaml")
-    return OmegaConf.merge(OmegaConf.structured(WeightsConfig), node)
+    node = OmegaConf.merge(
+        OmegaConf.structured(WeightsConfig), OmegaConf.load(CONF_DIR / "weights" / f"{name}.yaml")
+    )
+    assert isinstance(node, DictConfig)
+    return node
 
 
 def _leaves(node: object, prefix: str) -> dict[str, object]:

@@ -77,8 +77,9 @@ def env_label(env_id: str, kwargs: Mapping[str, Any] | None = None, cap: int | N
     is then safe wherever it is used: ``weights=tuned_<label>-<agent>``, file names, MLflow
     run names and tags, Optuna study names."""
     label = EnvId.parse(env_id).label + ("" if cap is None else f"-cap{cap}")
-    for key in sorted(kwargs or {}):
-        label += f".{_label_text(key)}-{_label_text(kwargs[key])}"  # type: ignore[index]
+    args = dict(kwargs or {})
+    for key in sorted(args):
+        label += f".{_label_text(key)}-{_label_text(args[key])}"
     return label
 
 
