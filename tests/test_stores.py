@@ -1,11 +1,14 @@
 """Every store cdqn cannot use is refused with one line and exit status 2, no traceback:
-an unwritable folder, a folder that cannot be created, a file that is not SQLite, a folder
-where the database file should be, a server that is down (a closed port).  The real
-``python -m cdqn.train`` and ``analysis/make_table.py`` in subprocesses."""
+an unwritable folder, a folder that cannot be created, a file that is not SQLite, another
+program's SQLite database, a folder where the database file should be, a server that is down
+(a closed port).  The real ``python -m cdqn.train`` and ``analysis/make_table.py`` in
+subprocesses."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sqlite3
 import subprocess
 import sys
 from collections.abc import Callable
@@ -40,6 +43,13 @@ def _not_sqlite(tmp: Path) -> tuple[str, str]:
     return f"sqlite:///{tmp}/notes.db", f"{tmp}/notes.db is not an SQLite database"
 
 
+def _other_program(tmp: Path) -> tuple[str, str]:
+    with contextlib.closing(sqlite3.connect(tmp / "optuna.db")) as db:
+        db.execute("CREATE TABLE studies (study_id INTEGER PRIMARY KEY, study_name TEXT)")
+        db.commit()
+    return f"sqlite:///{tmp}/optuna.db", f"{tmp}/optuna.db is another program's SQLite database"
+
+
 def _folder_as_file(tmp: Path) -> tuple[str, str]:
     (tmp / "store.db").mkdir()
     return f"sqlite:///{tmp}/store.db", f"{tmp}/store.db is not a file"
@@ -54,6 +64,7 @@ CASES: dict[str, Callable[[Path], tuple[str, str]]] = {
     "unwritable folder": _unwritable,
     "folder cannot be created": _uncreatable,
     "not an SQLite file": _not_sqlite,
+    "another program's database": _other_program,
     "a folder, not a file": _folder_as_file,
     "server down": _server_down,
 }
@@ -77,7 +88,9 @@ def test_train_refuses_an_unusable_store(case: str, tmp_path: Path) -> None:
     _one_line_exit_2(proc, f"tracking.uri='{uri}'", expected)
 
 
-@pytest.mark.parametrize("case", ["not an SQLite file", "server down", "no such file"])
+@pytest.mark.parametrize(
+    "case", ["not an SQLite file", "another program's database", "server down", "no such file"]
+)
 def test_analysis_refuses_an_unusable_store(case: str, tmp_path: Path) -> None:
     if case == "no such file":
         uri, expected = f"sqlite:///{tmp_path}/none.db", f"no such file {tmp_path}/none.db"

@@ -8,10 +8,12 @@ one metric call per environment step.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
 import os
+import sqlite3
 import subprocess
 import tempfile
 import time
@@ -226,6 +228,31 @@ def _check_database(path: Path, uri: str, write: bool = True, name: str = "track
         raise TrackingError(f"{name}={uri!r}: cannot open {path} ({err.strerror or err})") from None
     if head and head != SQLITE_HEADER:
         raise TrackingError(f"{name}={uri!r}: {path} is not an SQLite database; {hint}")
+    tables = _tables(path) if head else set()
+    if tables and not tables >= MLFLOW_TABLES:
+        shown = ", ".join(sorted(tables)[:4]) + (", ..." if len(tables) > 4 else "")
+        raise TrackingError(
+            f"{name}={uri!r}: {path} is another program's SQLite database (tables {shown}), "
+            f"not an MLflow store; {hint}"
+        )
+
+
+MLFLOW_TABLES = frozenset({"experiments", "runs"})
+"""Tables every MLflow SQLite store has; a database with tables but not these (an Optuna
+study's ``optuna.db``, say) is not one, and MLflow would add its own tables to it."""
+
+
+def _tables(path: Path) -> set[str]:
+    """The table names of the SQLite database at ``path``, read-only; empty when it cannot be
+    read now (a writer holds it: the store's own checks then report what is wrong)."""
+    try:
+        with contextlib.closing(
+            sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=5.0)
+        ) as db:
+            rows = db.execute("SELECT name FROM sqlite_master WHERE type = 'table'").fetchall()
+    except sqlite3.Error:
+        return set()
+    return {str(r[0]) for r in rows}
 
 
 def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
