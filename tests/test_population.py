@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import signal
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -26,6 +28,7 @@ from cdqn.vector_env import (
     make_vector_env,
 )
 from tests.conftest import compose_config
+from tests.helpers import runs_of, signals_after_episode
 
 ENVS = {
     "CartPole-v1": EnvConfig(),
@@ -297,6 +300,30 @@ def test_double_dqn_population_records_each_seed_as_its_run(tracking_uri: str) -
     assert seeds == ["5", "6"] and member_seeds(5, 2) == [5, 6]
     assert {r.status for r in result.members} == {"FINISHED"}
     assert result.summary().status == "FINISHED"
+
+
+def test_a_signal_stops_a_population_trained_one_member_after_another(
+    tracking_uri: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``train.fast_path=false`` trains the members one after another; SIGTERM during the
+    first member stops the population (that member KILLED, resumable), not only the member:
+    no later member starts."""
+    arm = signals_after_episode(monkeypatch)
+    arm(2)
+    cfg = compose_config(
+        [
+            *BASE,
+            "controller=hinf_f",
+            "train.fast_path=false",
+            f"tracking.uri={tracking_uri}",
+            "seed=0",
+            "train.population=3",
+        ]  # fmt: skip
+    )
+    result = run_population(cfg)
+    assert [r.status for r in result.members] == ["KILLED"]
+    assert result.signum == signal.SIGTERM and result.summary().status == "KILLED"
+    assert [r.data.tags["seed"] for r in runs_of(tracking_uri)] == ["0"]
 
 
 @pytest.mark.parametrize("twin", [True, False], ids=["twin", "gym-loop"])

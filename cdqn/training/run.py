@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import signal
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -105,7 +106,16 @@ def _population(
         return start_population(cfg, progress, observe, should_stop)
     log.info("population of %s: members trained one after another", conf.controller.name)
     seeds = member_seeds(conf.seed, conf.train.population)
-    return PopulationResult([run_adopted(_member(cfg, s), progress) for s in seeds])
+    members: list[RunResult] = []
+    for i, seed in enumerate(seeds):
+        members.append(result := run_adopted(_member(cfg, seed), progress))
+        if result.signum is not None:  # SIGINT/SIGTERM stops the population, not one member
+            left = seeds[i + 1 :]
+            if left:
+                name = signal.Signals(result.signum).name
+                log.warning("stopped by %s: members of seeds %s not started", name, left)
+            return PopulationResult(members, result.signum)
+    return PopulationResult(members)
 
 
 def _member(cfg: DictConfig, seed: int) -> Adopted:
