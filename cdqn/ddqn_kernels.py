@@ -13,14 +13,18 @@ arithmetic of these matrix products (``B`` samples, ``n`` inputs, ``m`` actions,
 * backward: ``∂L/∂W_2`` (``B W m``), ``∂L/∂h`` (``B W m``), ``∂L/∂W_1`` (``B W n``):
   ``B W (n + 2m)`` (:func:`minibatch_macs`).
 
-Two compiled loops do it without a ``(B, W)`` temporary:
+Two compiled loops do it:
 
-1. **forward**, per sample, block by block of hidden units: the three passes in one loop
-   over the block, each unit's pre-activations a sum of ``n`` written-out products, the
-   ``3m`` output sums vectorised partial sums (``fastmath`` ``reassoc``);
-2. **backward**, per hidden unit ``j`` (whose parameters only it touches), a loop over the
-   samples: ``p_ij`` again (``n`` multiply-adds: cheaper than storing ``B × W`` of them), the
-   unit's gradients as ``n + m + 1`` sums over the samples, then its step.
+1. **forward**, block by block of hidden units, two samples per pass over the block (one
+   with more than :data:`UNIT_MAJOR_INPUTS` inputs): the three passes in one loop over the
+   block, each unit's pre-activations a sum of ``n`` written-out products, the ``3m``
+   output sums vectorised partial sums (``fastmath`` ``reassoc``); ``h_ij = relu(p_ij)`` at
+   ``s_i`` is kept (a ``B × W`` array);
+2. **backward**, block by block, vectorised over the block's hidden units (each touches
+   only its own parameters), :data:`CHUNK` samples per pass: the unit's gradients as ``n + m + 1`` sums over the
+   samples, added in sample order and held in registers, then its step.  With more than
+   :data:`UNIT_MAJOR_INPUTS` inputs the sums do not fit in registers: per unit, a loop over
+   the samples recomputes ``p_ij`` and takes the same sums (partial sums over the samples).
 
 The loops are written out for the network's ``(n, m)`` (source generated from the template
 below, written once to a cache folder so that numba caches its machine code on disk) and run
@@ -287,21 +291,113 @@ _JIT = {{"cache": True, "fastmath": {{"reassoc", "contract"}}}}
 
 
 @njit(**_JIT)
-def forward(w1t, b1, w2, tw1t, tb1, tw2, x, y, j0, j1, out, zero):
+def forward(w1t, b1, w2, tw1t, tb1, tw2, s, s2, j0, j1, q, h, zero):
     b, tb = b1[j0:j1], tb1[j0:j1]
     {fw_rows}
-    {fx}
-    {fw_acc} = zero
-    for jj in range(j1 - j0):
-        hs = max(b[jj] + {ps}, zero)
-        hn = max(b[jj] + {pn}, zero)
-        ht = max(tb[jj] + {pt}, zero)
-        {fw_sums}
-    {fw_out}
+    i = 0
+    while i + {fw_chunk} <= s.shape[0]:
+        {fw_scalars}
+        for jj in range(j1 - j0):
+            {fw_body}
+        {fw_out}
+        i += {fw_chunk}
+    while i < s.shape[0]:
+        {fw1_scalars}
+        for jj in range(j1 - j0):
+            {fw1_body}
+        {fw1_out}
+        i += 1
+
+
+{backward}
+
+@njit(**_JIT)
+def step(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, buf_obs, buf_next, buf_actions, buf_rewards,
+         buf_terminated, idx, hyper, block, h):
+    lr, discount, zero = hyper[0], hyper[1], hyper[2]
+    batch, n_obs, n_act, width = idx.shape[0], w1t.shape[0], w2.shape[0], w1t.shape[1]
+    s = np.empty((batch, n_obs), b1.dtype)
+    s2 = np.empty((batch, n_obs), b1.dtype)
+    acts = np.empty(batch, np.int64)
+    q = np.empty((batch, 3, n_act), b1.dtype)
+    for i in range(batch):
+        j = idx[i]
+        acts[i] = buf_actions[j]
+        for k in range(n_obs):
+            s[i, k] = buf_obs[j, k]
+            s2[i, k] = buf_next[j, k]
+        for a in range(n_act):
+            q[i, 0, a], q[i, 1, a], q[i, 2, a] = b2[a], b2[a], tb2[a]
+    for j0 in range(0, width, block):
+        j1 = min(j0 + block, width)
+        forward(w1t, b1, w2, tw1t, tb1, tw2, s, s2, j0, j1, q, h, zero)
+    delta = np.empty(batch, b1.dtype)
+    gb2 = np.zeros(n_act, b1.dtype)
+    loss = td_errors(q, acts, idx, buf_rewards, buf_terminated, discount, delta, gb2)
+    backward(w1t, b1, w2, s, h, acts, delta, lr, zero, block)
+    for a in range(n_act):
+        b2[a] += lr * gb2[a]
+    return loss
 
 
 @njit(**_JIT)
-def backward(w1t, b1, w2, xs, acts, delta, lr, zero):
+def learn(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, buf_obs, buf_next, buf_actions, buf_rewards,
+          buf_terminated, idx, members, hyper, block, last_loss):
+    h = np.empty((idx.shape[1], w1t.shape[2]), b1.dtype)
+    for k in range(members.shape[0]):
+        if members[k]:
+            last_loss[k] = step(w1t[k], b1[k], w2[k], b2[k], tw1t[k], tb1[k], tw2[k], tb2[k],
+                                buf_obs[k], buf_next[k], buf_actions[k], buf_rewards[k],
+                                buf_terminated[k], idx[k], hyper, block, h)
+"""
+
+_BACKWARD_UNITS = """
+@njit(**_JIT)
+def chunk(w2, s, h, acts, delta, i, j0, j1, acc, zero):
+    {ch_rows}
+    {ch_scalars}
+    for jj in range(j1 - j0):
+        {ch_load}
+        {ch_body}
+        {ch_store}
+
+
+@njit(**_JIT)
+def single(w2, s, h, acts, delta, i, j0, j1, acc, zero):
+    {sg_rows}
+    {sg_scalars}
+    for jj in range(j1 - j0):
+        {sg_load}
+        {sg_body}
+        {sg_store}
+
+
+@njit(**_JIT)
+def backward(w1t, b1, w2, s, h, acts, delta, lr, zero, block):
+    batch, width = acts.shape[0], w1t.shape[1]
+    acc = np.empty(({n_acc}, block), b1.dtype)
+    for j0 in range(0, width, block):
+        j1 = min(j0 + block, width)
+        acc[:, : j1 - j0] = zero
+        i = 0
+        while i + {chunk} <= batch:
+            chunk(w2, s, h, acts, delta, i, j0, j1, acc, zero)
+            i += {chunk}
+        while i < batch:
+            single(w2, s, h, acts, delta, i, j0, j1, acc, zero)
+            i += 1
+        for jj in range(j1 - j0):
+            j = j0 + jj
+            {bw_step}
+"""
+
+_BACKWARD_SAMPLES = """
+@njit(**_JIT)
+def backward(w1t, b1, w2, s, h, acts, delta, lr, zero, block):
+    xs = np.empty((s.shape[1], s.shape[0]), b1.dtype)
+    for i in range(s.shape[0]):
+        for k in range(s.shape[1]):
+            xs[k, i] = s[i, k]
     {bw_cols}
     for j in range(w1t.shape[1]):
         bj = b1[j]
@@ -316,82 +412,58 @@ def backward(w1t, b1, w2, xs, acts, delta, lr, zero):
             {bw_sums}
         b1[j] += lr * sb
         {bw_step}
-
-
-@njit(**_JIT)
-def step(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, buf_obs, buf_next, buf_actions, buf_rewards,
-         buf_terminated, idx, hyper, block):
-    lr, discount, zero = hyper[0], hyper[1], hyper[2]
-    batch, n_obs, n_act, width = idx.shape[0], w1t.shape[0], w2.shape[0], w1t.shape[1]
-    s = np.empty((batch, n_obs), b1.dtype)
-    s2 = np.empty((batch, n_obs), b1.dtype)
-    xs = np.empty((n_obs, batch), b1.dtype)
-    acts = np.empty(batch, np.int64)
-    q = np.empty((batch, 3, n_act), b1.dtype)
-    for i in range(batch):
-        j = idx[i]
-        acts[i] = buf_actions[j]
-        for k in range(n_obs):
-            s[i, k] = buf_obs[j, k]
-            s2[i, k] = buf_next[j, k]
-            xs[k, i] = s[i, k]
-        for a in range(n_act):
-            q[i, 0, a], q[i, 1, a], q[i, 2, a] = b2[a], b2[a], tb2[a]
-    for j0 in range(0, width, block):
-        j1 = min(j0 + block, width)
-        for i in range(batch):
-            forward(w1t, b1, w2, tw1t, tb1, tw2, s[i], s2[i], j0, j1, q[i], zero)
-    delta = np.empty(batch, b1.dtype)
-    gb2 = np.zeros(n_act, b1.dtype)
-    loss = td_errors(q, acts, idx, buf_rewards, buf_terminated, discount, delta, gb2)
-    backward(w1t, b1, w2, xs, acts, delta, lr, zero)
-    for a in range(n_act):
-        b2[a] += lr * gb2[a]
-    return loss
-
-
-@njit(**_JIT)
-def learn(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, buf_obs, buf_next, buf_actions, buf_rewards,
-          buf_terminated, idx, members, hyper, block, last_loss):
-    for k in range(members.shape[0]):
-        if members[k]:
-            last_loss[k] = step(w1t[k], b1[k], w2[k], b2[k], tw1t[k], tb1[k], tw2[k], tb2[k],
-                                buf_obs[k], buf_next[k], buf_actions[k], buf_rewards[k],
-                                buf_terminated[k], idx[k], hyper, block)
 """
+
+UNIT_MAJOR_INPUTS = 8
+"""Up to this many inputs the backward loop runs over the hidden units with the unit's
+``n + m + 1`` sums in registers (:data:`_BACKWARD_UNITS`) and the forward loop takes two
+samples per pass; with more, the sums do not fit in registers, and the backward loop runs
+over the samples per unit (:data:`_BACKWARD_SAMPLES`)."""
+
+CHUNK = 4
+"""Samples per pass of the unit-major backward loop over a block of hidden units."""
 
 
 def _source(n_obs: int, n_actions: int) -> str:
     """The template written out for ``n_obs`` inputs and ``n_actions`` actions."""
     obs, act = range(n_obs), range(n_actions)
-
-    def terms(w: str, x: str) -> str:
-        return " + ".join(f"{w}{k}[jj] * {x}{k}" for k in obs)
-
-    fw_acc = [f"{v}{a}" for v in ("qs", "qn", "qt") for a in act]
-    sums = [f"qs{a} += V{a}[jj] * hs; qn{a} += V{a}[jj] * hn; qt{a} += U{a}[jj] * ht" for a in act]
-    wa = "v0j" if n_actions == 1 else _select(n_actions)
-    fields = {
+    units = n_obs <= UNIT_MAJOR_INPUTS
+    fw_chunk = 2 if units else 1
+    fields: dict[str, object] = {
         "fw_rows": "; ".join(
             [f"W{k}, T{k} = w1t[{k}, j0:j1], tw1t[{k}, j0:j1]" for k in obs]
             + [f"V{a}, U{a} = w2[{a}, j0:j1], tw2[{a}, j0:j1]" for a in act]
         ),
-        "fx": "; ".join(f"x{k}, y{k} = x[{k}], y[{k}]" for k in obs),
-        "fw_acc": " = ".join(fw_acc),
-        "ps": terms("W", "x"),
-        "pn": terms("W", "y"),
-        "pt": terms("T", "y"),
-        "fw_sums": "\n        ".join(sums),
-        "fw_out": "; ".join(
-            f"out[{r}, {a}] += {v}{a}" for r, v in enumerate(("qs", "qn", "qt")) for a in act
-        ),
+        "fw_chunk": fw_chunk,
+    }
+    for prefix, samples in (("fw", range(fw_chunk)), ("fw1", range(1))):
+        fields |= _forward_fields(prefix, samples, n_obs, n_actions)
+    if units:
+        bw = {"n_acc": 1 + n_obs + n_actions, "chunk": CHUNK, "bw_step": "\n            ".join(
+            ["b1[j] += lr * acc[0, jj]"]
+            + [f"w1t[{k}, j] += lr * acc[{1 + k}, jj]" for k in obs]
+            + [f"w2[{a}, j] += lr * acc[{1 + n_obs + a}, jj]" for a in act]
+        )}  # fmt: skip
+        for prefix, samples in (("ch", range(CHUNK)), ("sg", range(1))):
+            bw |= _backward_fields(prefix, samples, n_obs, n_actions)
+        backward = _BACKWARD_UNITS.format(**bw)
+    else:
+        backward = _BACKWARD_SAMPLES.format(**_samples_fields(n_obs, n_actions))
+    return _TEMPLATE.format(**fields, backward=backward.strip("\n"))
+
+
+def _samples_fields(n_obs: int, n_actions: int) -> dict[str, str]:
+    """:data:`_BACKWARD_SAMPLES` written out: per hidden unit ``j`` a loop over the samples
+    with ``p_ij`` again and the unit's ``n + m + 1`` sums."""
+    obs, act = range(n_obs), range(n_actions)
+    return {
         "bw_cols": "; ".join(f"X{k} = xs[{k}]" for k in obs),
         "bw_params": "; ".join(
             [f"w{k}j = w1t[{k}, j]" for k in obs] + [f"v{a}j = w2[{a}, j]" for a in act]
         ),
         "bw_acc": " = ".join(["sb"] + [f"s{k}" for k in obs] + [f"e{a}" for a in act]),
         "bw_p": " + ".join(f"w{k}j * X{k}[i]" for k in obs),
-        "bw_wa": wa,
+        "bw_wa": "v0j" if n_actions == 1 else _select(n_actions),
         "bw_sums": "\n            ".join(
             [f"s{k} += X{k}[i] * g" for k in obs]
             + [f"e{a} += hd if ai == {a} else zero" for a in act]
@@ -400,7 +472,6 @@ def _source(n_obs: int, n_actions: int) -> str:
             [f"w1t[{k}, j] += lr * s{k}" for k in obs] + [f"w2[{a}, j] += lr * e{a}" for a in act]
         ),
     }
-    return _TEMPLATE.format(**fields)
 
 
 def _select(n_actions: int) -> str:
@@ -409,6 +480,77 @@ def _select(n_actions: int) -> str:
     for a in range(n_actions - 2, -1, -1):
         expr = f"v{a}j if ai == {a} else ({expr})"
     return expr
+
+
+def _forward_fields(prefix: str, samples: range, n_obs: int, n_actions: int) -> dict[str, str]:
+    """The forward loop's body over the samples ``i + u``, ``u`` in ``samples``: per hidden
+    unit the three pre-activations of each sample, ``relu`` at ``s_i`` kept in ``h``, and
+    the output sums."""
+    obs, act = range(n_obs), range(n_actions)
+
+    def terms(w: str, x: str) -> str:
+        return " + ".join(f"{w}{k}[jj] * {x}_{k}" for k in obs)
+
+    scalars, body, out = [], [], []
+    for u in samples:
+        scalars += [
+            "; ".join(f"x{u}_{k}, y{u}_{k} = s[i + {u}, {k}], s2[i + {u}, {k}]" for k in obs),
+            f"H{u} = h[i + {u}, j0:j1]",
+            " = ".join([f"{v}{u}_{a}" for v in ("qs", "qn", "qt") for a in act] + ["zero"]),
+        ]
+        body += [
+            f"hs{u} = max(b[jj] + {terms('W', f'x{u}')}, zero)",
+            f"hn{u} = max(b[jj] + {terms('W', f'y{u}')}, zero)",
+            f"ht{u} = max(tb[jj] + {terms('T', f'y{u}')}, zero)",
+            f"H{u}[jj] = hs{u}",
+            *[
+                f"qs{u}_{a} += V{a}[jj] * hs{u}; qn{u}_{a} += V{a}[jj] * hn{u}; "
+                f"qt{u}_{a} += U{a}[jj] * ht{u}"
+                for a in act
+            ],
+        ]
+        out += [
+            f"q[i + {u}, {r}, {a}] += {v}{u}_{a}"
+            for r, v in enumerate(("qs", "qn", "qt"))
+            for a in act
+        ]
+    return {
+        f"{prefix}_scalars": "\n        ".join(scalars),
+        f"{prefix}_body": "\n            ".join(body),
+        f"{prefix}_out": "; ".join(out),
+    }
+
+
+def _backward_fields(prefix: str, samples: range, n_obs: int, n_actions: int) -> dict[str, str]:
+    """The backward loop's body over the samples ``i + u``, ``u`` in ``samples``: the
+    unit's sums ``acc`` (``Σ g``, ``Σ x_k g``, ``Σ h [a_i = a]`` δ-weighted) loaded, each
+    sample's terms added in sample order, stored."""
+    obs, act = range(n_obs), range(n_actions)
+    names = ["sb"] + [f"s{k}" for k in obs] + [f"e{a}" for a in act]
+    body = []
+    for u in samples:
+        body += [
+            f"h{u} = H{u}[jj]",
+            f"g{u} = d{u} * R{u}[jj] if h{u} > zero else zero",
+            f"hd{u} = d{u} * h{u}",
+            f"sb += g{u}",
+            *[f"s{k} += x{u}_{k} * g{u}" for k in obs],
+            *[f"e{a} += hd{u} if a{u} == {a} else zero" for a in act],
+        ]
+    scalars = []
+    for u in samples:
+        scalars += [
+            f"a{u}, d{u} = acts[i + {u}], delta[i + {u}]",
+            f"H{u}, R{u} = h[i + {u}, j0:j1], w2[a{u}, j0:j1]",
+            *[f"x{u}_{k} = s[i + {u}, {k}]" for k in obs],
+        ]
+    return {
+        f"{prefix}_rows": "; ".join(f"A{r} = acc[{r}]" for r in range(len(names))),
+        f"{prefix}_scalars": "\n    ".join(scalars),
+        f"{prefix}_load": "; ".join(f"{v} = A{r}[jj]" for r, v in enumerate(names)),
+        f"{prefix}_body": "\n        ".join(body),
+        f"{prefix}_store": "; ".join(f"A{r}[jj] = {v}" for r, v in enumerate(names)),
+    }
 
 
 def _cache_dir() -> Path:
