@@ -13,18 +13,18 @@ arithmetic of these matrix products (``B`` samples, ``n`` inputs, ``m`` actions,
 * backward: ``∂L/∂W_2`` (``B W m``), ``∂L/∂h`` (``B W m``), ``∂L/∂W_1`` (``B W n``):
   ``B W (n + 2m)`` (:func:`minibatch_macs`).
 
-Two compiled loops do it:
+Two compiled loops do it, block by block of hidden units, without a ``(B, W)`` temporary:
 
-1. **forward**, block by block of hidden units, two samples per pass over the block (one
-   with more than :data:`UNIT_MAJOR_INPUTS` inputs): the three passes in one loop over the
-   block, each unit's pre-activations a sum of ``n`` written-out products, the ``3m``
-   output sums vectorised partial sums (``fastmath`` ``reassoc``); ``h_ij = relu(p_ij)`` at
-   ``s_i`` is kept (a ``B × W`` array);
-2. **backward**, block by block, vectorised over the block's hidden units (each touches
-   only its own parameters), :data:`CHUNK` samples per pass: the unit's gradients as ``n + m + 1`` sums over the
-   samples, added in sample order and held in registers, then its step.  With more than
-   :data:`UNIT_MAJOR_INPUTS` inputs the sums do not fit in registers: per unit, a loop over
-   the samples recomputes ``p_ij`` and takes the same sums (partial sums over the samples).
+1. **forward**, two samples per pass over the block (one with more than
+   :data:`FW_CHUNK_INPUTS` inputs): the three passes in one loop over the block, each
+   unit's pre-activations a sum of ``n`` written-out products, the ``3m`` output sums
+   vectorised partial sums (``fastmath`` ``reassoc``);
+2. **backward**, vectorised over the block's hidden units (each touches only its own
+   parameters), :data:`CHUNK` samples per pass: ``p_ij`` again (``n`` multiply-adds:
+   cheaper than storing ``B × W`` of them), the unit's gradients as ``n + m + 1`` sums over
+   the samples, added in sample order and held in registers, then its step.  With more
+   inputs and actions than :data:`UNIT_MAJOR_SIZE`, per unit a loop over the samples takes
+   them (partial sums over the samples).
 
 The loops are written out for the network's ``(n, m)`` (source generated from the template
 below, written once to a cache folder so that numba caches its machine code on disk) and run
@@ -291,7 +291,7 @@ _JIT = {{"cache": True, "fastmath": {{"reassoc", "contract"}}}}
 
 
 @njit(**_JIT)
-def forward(w1t, b1, w2, tw1t, tb1, tw2, s, s2, j0, j1, q, h, zero):
+def forward(w1t, b1, w2, tw1t, tb1, tw2, s, s2, j0, j1, q, zero):
     b, tb = b1[j0:j1], tb1[j0:j1]
     {fw_rows}
     i = 0
@@ -313,7 +313,7 @@ def forward(w1t, b1, w2, tw1t, tb1, tw2, s, s2, j0, j1, q, h, zero):
 
 @njit(**_JIT)
 def step(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, buf_obs, buf_next, buf_actions, buf_rewards,
-         buf_terminated, idx, hyper, block, h):
+         buf_terminated, idx, hyper, block):
     lr, discount, zero = hyper[0], hyper[1], hyper[2]
     batch, n_obs, n_act, width = idx.shape[0], w1t.shape[0], w2.shape[0], w1t.shape[1]
     s = np.empty((batch, n_obs), b1.dtype)
@@ -330,11 +330,11 @@ def step(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, buf_obs, buf_next, buf_actions, b
             q[i, 0, a], q[i, 1, a], q[i, 2, a] = b2[a], b2[a], tb2[a]
     for j0 in range(0, width, block):
         j1 = min(j0 + block, width)
-        forward(w1t, b1, w2, tw1t, tb1, tw2, s, s2, j0, j1, q, h, zero)
+        forward(w1t, b1, w2, tw1t, tb1, tw2, s, s2, j0, j1, q, zero)
     delta = np.empty(batch, b1.dtype)
     gb2 = np.zeros(n_act, b1.dtype)
     loss = td_errors(q, acts, idx, buf_rewards, buf_terminated, discount, delta, gb2)
-    backward(w1t, b1, w2, s, h, acts, delta, lr, zero, block)
+    backward(w1t, b1, w2, s, acts, delta, lr, zero, block)
     for a in range(n_act):
         b2[a] += lr * gb2[a]
     return loss
@@ -343,17 +343,16 @@ def step(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, buf_obs, buf_next, buf_actions, b
 @njit(**_JIT)
 def learn(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, buf_obs, buf_next, buf_actions, buf_rewards,
           buf_terminated, idx, members, hyper, block, last_loss):
-    h = np.empty((idx.shape[1], w1t.shape[2]), b1.dtype)
     for k in range(members.shape[0]):
         if members[k]:
             last_loss[k] = step(w1t[k], b1[k], w2[k], b2[k], tw1t[k], tb1[k], tw2[k], tb2[k],
                                 buf_obs[k], buf_next[k], buf_actions[k], buf_rewards[k],
-                                buf_terminated[k], idx[k], hyper, block, h)
+                                buf_terminated[k], idx[k], hyper, block)
 """
 
 _BACKWARD_UNITS = """
 @njit(**_JIT)
-def chunk(w2, s, h, acts, delta, i, j0, j1, acc, zero):
+def chunk(w1t, b1, w2, s, acts, delta, i, j0, j1, acc, zero):
     {ch_rows}
     {ch_scalars}
     for jj in range(j1 - j0):
@@ -363,7 +362,7 @@ def chunk(w2, s, h, acts, delta, i, j0, j1, acc, zero):
 
 
 @njit(**_JIT)
-def single(w2, s, h, acts, delta, i, j0, j1, acc, zero):
+def single(w1t, b1, w2, s, acts, delta, i, j0, j1, acc, zero):
     {sg_rows}
     {sg_scalars}
     for jj in range(j1 - j0):
@@ -373,7 +372,7 @@ def single(w2, s, h, acts, delta, i, j0, j1, acc, zero):
 
 
 @njit(**_JIT)
-def backward(w1t, b1, w2, s, h, acts, delta, lr, zero, block):
+def backward(w1t, b1, w2, s, acts, delta, lr, zero, block):
     batch, width = acts.shape[0], w1t.shape[1]
     acc = np.empty(({n_acc}, block), b1.dtype)
     for j0 in range(0, width, block):
@@ -381,10 +380,10 @@ def backward(w1t, b1, w2, s, h, acts, delta, lr, zero, block):
         acc[:, : j1 - j0] = zero
         i = 0
         while i + {chunk} <= batch:
-            chunk(w2, s, h, acts, delta, i, j0, j1, acc, zero)
+            chunk(w1t, b1, w2, s, acts, delta, i, j0, j1, acc, zero)
             i += {chunk}
         while i < batch:
-            single(w2, s, h, acts, delta, i, j0, j1, acc, zero)
+            single(w1t, b1, w2, s, acts, delta, i, j0, j1, acc, zero)
             i += 1
         for jj in range(j1 - j0):
             j = j0 + jj
@@ -393,7 +392,7 @@ def backward(w1t, b1, w2, s, h, acts, delta, lr, zero, block):
 
 _BACKWARD_SAMPLES = """
 @njit(**_JIT)
-def backward(w1t, b1, w2, s, h, acts, delta, lr, zero, block):
+def backward(w1t, b1, w2, s, acts, delta, lr, zero, block):
     xs = np.empty((s.shape[1], s.shape[0]), b1.dtype)
     for i in range(s.shape[0]):
         for k in range(s.shape[1]):
@@ -414,11 +413,15 @@ def backward(w1t, b1, w2, s, h, acts, delta, lr, zero, block):
         {bw_step}
 """
 
-UNIT_MAJOR_INPUTS = 8
-"""Up to this many inputs the backward loop runs over the hidden units with the unit's
-``n + m + 1`` sums in registers (:data:`_BACKWARD_UNITS`) and the forward loop takes two
-samples per pass; with more, the sums do not fit in registers, and the backward loop runs
-over the samples per unit (:data:`_BACKWARD_SAMPLES`)."""
+UNIT_MAJOR_SIZE = 6
+"""Up to this many inputs and actions together the backward loop runs over the hidden units
+with the unit's ``n + m + 1`` sums in registers (:data:`_BACKWARD_UNITS`); with more, it
+runs over the samples per unit (:data:`_BACKWARD_SAMPLES`): the unit-major loop reads and
+writes ``2n + m + 2`` rows, and past a few of them LLVM, given no aliasing information,
+leaves it scalar (measured: CartPole's 4 + 2 vectorise, Acrobot's 6 + 3 do not)."""
+
+FW_CHUNK_INPUTS = 8
+"""Up to this many inputs the forward loop takes two samples per pass over a block."""
 
 CHUNK = 4
 """Samples per pass of the unit-major backward loop over a block of hidden units."""
@@ -427,8 +430,8 @@ CHUNK = 4
 def _source(n_obs: int, n_actions: int) -> str:
     """The template written out for ``n_obs`` inputs and ``n_actions`` actions."""
     obs, act = range(n_obs), range(n_actions)
-    units = n_obs <= UNIT_MAJOR_INPUTS
-    fw_chunk = 2 if units else 1
+    units = n_obs + n_actions <= UNIT_MAJOR_SIZE
+    fw_chunk = 2 if n_obs <= FW_CHUNK_INPUTS else 1
     fields: dict[str, object] = {
         "fw_rows": "; ".join(
             [f"W{k}, T{k} = w1t[{k}, j0:j1], tw1t[{k}, j0:j1]" for k in obs]
@@ -484,8 +487,7 @@ def _select(n_actions: int) -> str:
 
 def _forward_fields(prefix: str, samples: range, n_obs: int, n_actions: int) -> dict[str, str]:
     """The forward loop's body over the samples ``i + u``, ``u`` in ``samples``: per hidden
-    unit the three pre-activations of each sample, ``relu`` at ``s_i`` kept in ``h``, and
-    the output sums."""
+    unit the three pre-activations of each sample and the output sums."""
     obs, act = range(n_obs), range(n_actions)
 
     def terms(w: str, x: str) -> str:
@@ -495,14 +497,12 @@ def _forward_fields(prefix: str, samples: range, n_obs: int, n_actions: int) -> 
     for u in samples:
         scalars += [
             "; ".join(f"x{u}_{k}, y{u}_{k} = s[i + {u}, {k}], s2[i + {u}, {k}]" for k in obs),
-            f"H{u} = h[i + {u}, j0:j1]",
             " = ".join([f"{v}{u}_{a}" for v in ("qs", "qn", "qt") for a in act] + ["zero"]),
         ]
         body += [
             f"hs{u} = max(b[jj] + {terms('W', f'x{u}')}, zero)",
             f"hn{u} = max(b[jj] + {terms('W', f'y{u}')}, zero)",
             f"ht{u} = max(tb[jj] + {terms('T', f'y{u}')}, zero)",
-            f"H{u}[jj] = hs{u}",
             *[
                 f"qs{u}_{a} += V{a}[jj] * hs{u}; qn{u}_{a} += V{a}[jj] * hn{u}; "
                 f"qt{u}_{a} += U{a}[jj] * ht{u}"
@@ -524,13 +524,13 @@ def _forward_fields(prefix: str, samples: range, n_obs: int, n_actions: int) -> 
 def _backward_fields(prefix: str, samples: range, n_obs: int, n_actions: int) -> dict[str, str]:
     """The backward loop's body over the samples ``i + u``, ``u`` in ``samples``: the
     unit's sums ``acc`` (``Σ g``, ``Σ x_k g``, ``Σ h [a_i = a]`` δ-weighted) loaded, each
-    sample's terms added in sample order, stored."""
+    sample's ``h = relu(p)`` and terms added in sample order, stored."""
     obs, act = range(n_obs), range(n_actions)
     names = ["sb"] + [f"s{k}" for k in obs] + [f"e{a}" for a in act]
     body = []
     for u in samples:
         body += [
-            f"h{u} = H{u}[jj]",
+            f"h{u} = max(b[jj] + {' + '.join(f'W{k}[jj] * x{u}_{k}' for k in obs)}, zero)",
             f"g{u} = d{u} * R{u}[jj] if h{u} > zero else zero",
             f"hd{u} = d{u} * h{u}",
             f"sb += g{u}",
@@ -541,11 +541,15 @@ def _backward_fields(prefix: str, samples: range, n_obs: int, n_actions: int) ->
     for u in samples:
         scalars += [
             f"a{u}, d{u} = acts[i + {u}], delta[i + {u}]",
-            f"H{u}, R{u} = h[i + {u}, j0:j1], w2[a{u}, j0:j1]",
+            f"R{u} = w2[a{u}, j0:j1]",
             *[f"x{u}_{k} = s[i + {u}, {k}]" for k in obs],
         ]
     return {
-        f"{prefix}_rows": "; ".join(f"A{r} = acc[{r}]" for r in range(len(names))),
+        f"{prefix}_rows": "; ".join(
+            [f"A{r} = acc[{r}]" for r in range(len(names))]
+            + ["b = b1[j0:j1]"]
+            + [f"W{k} = w1t[{k}, j0:j1]" for k in obs]
+        ),
         f"{prefix}_scalars": "\n    ".join(scalars),
         f"{prefix}_load": "; ".join(f"{v} = A{r}[jj]" for r, v in enumerate(names)),
         f"{prefix}_body": "\n        ".join(body),
