@@ -350,27 +350,20 @@ def learn(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, buf_obs, buf_next, buf_actions, 
                                 buf_terminated[k], idx[k], hyper, block)
 """
 
+_UNIT_PASS = """
+@njit(**_JIT)
+def {name}(w1t, b1, w2, s, acts, delta, i, j0, j1, acc, zero):
+    {rows}
+    {scalars}
+    for jj in range(j1 - j0):
+        {load}
+        {body}
+        {store}
+"""
+"""One pass of the unit-major backward loop over a block: ``chunk`` (:data:`CHUNK`
+samples) and ``single`` (one)."""
+
 _BACKWARD_UNITS = """
-@njit(**_JIT)
-def chunk(w1t, b1, w2, s, acts, delta, i, j0, j1, acc, zero):
-    {ch_rows}
-    {ch_scalars}
-    for jj in range(j1 - j0):
-        {ch_load}
-        {ch_body}
-        {ch_store}
-
-
-@njit(**_JIT)
-def single(w1t, b1, w2, s, acts, delta, i, j0, j1, acc, zero):
-    {sg_rows}
-    {sg_scalars}
-    for jj in range(j1 - j0):
-        {sg_load}
-        {sg_body}
-        {sg_store}
-
-
 @njit(**_JIT)
 def backward(w1t, b1, w2, s, acts, delta, lr, zero, block):
     batch, width = acts.shape[0], w1t.shape[1]
@@ -447,9 +440,11 @@ def _source(n_obs: int, n_actions: int) -> str:
             + [f"w1t[{k}, j] += lr * acc[{1 + k}, jj]" for k in obs]
             + [f"w2[{a}, j] += lr * acc[{1 + n_obs + a}, jj]" for a in act]
         )}  # fmt: skip
-        for prefix, samples in (("ch", range(CHUNK)), ("sg", range(1))):
-            bw |= _backward_fields(prefix, samples, n_obs, n_actions)
-        backward = _BACKWARD_UNITS.format(**bw)
+        passes = [
+            _UNIT_PASS.format(name=name, **_backward_fields(samples, n_obs, n_actions))
+            for name, samples in (("chunk", range(CHUNK)), ("single", range(1)))
+        ]
+        backward = "\n\n".join([*passes, _BACKWARD_UNITS.format(**bw)])
     else:
         backward = _BACKWARD_SAMPLES.format(**_samples_fields(n_obs, n_actions))
     return _TEMPLATE.format(**fields, backward=backward.strip("\n"))
@@ -521,7 +516,7 @@ def _forward_fields(prefix: str, samples: range, n_obs: int, n_actions: int) -> 
     }
 
 
-def _backward_fields(prefix: str, samples: range, n_obs: int, n_actions: int) -> dict[str, str]:
+def _backward_fields(samples: range, n_obs: int, n_actions: int) -> dict[str, str]:
     """The backward loop's body over the samples ``i + u``, ``u`` in ``samples``: the
     unit's sums ``acc`` (``Σ g``, ``Σ x_k g``, ``Σ h [a_i = a]`` δ-weighted) loaded, each
     sample's ``h = relu(p)`` and terms added in sample order, stored."""
@@ -545,15 +540,15 @@ def _backward_fields(prefix: str, samples: range, n_obs: int, n_actions: int) ->
             *[f"x{u}_{k} = s[i + {u}, {k}]" for k in obs],
         ]
     return {
-        f"{prefix}_rows": "; ".join(
+        "rows": "; ".join(
             [f"A{r} = acc[{r}]" for r in range(len(names))]
             + ["b = b1[j0:j1]"]
             + [f"W{k} = w1t[{k}, j0:j1]" for k in obs]
         ),
-        f"{prefix}_scalars": "\n    ".join(scalars),
-        f"{prefix}_load": "; ".join(f"{v} = A{r}[jj]" for r, v in enumerate(names)),
-        f"{prefix}_body": "\n        ".join(body),
-        f"{prefix}_store": "; ".join(f"A{r}[jj] = {v}" for r, v in enumerate(names)),
+        "scalars": "\n    ".join(scalars),
+        "load": "; ".join(f"{v} = A{r}[jj]" for r, v in enumerate(names)),
+        "body": "\n        ".join(body),
+        "store": "; ".join(f"A{r}[jj] = {v}" for r, v in enumerate(names)),
     }
 
 

@@ -61,7 +61,7 @@ from cdqn.training.signals import SignalBuffer  # noqa: E402
 
 PARTS = ("environment", "exploration", "act (forward at s after a reset, argmax)", "network",
          "controller", "recording", "loop (Python)")  # fmt: skip
-DDQN_PARTS = ("environment", "exploration", "act (forward at s after a reset or a minibatch step)",
+DDQN_PARTS = ("environment", "exploration", "act (pass at s after a reset or minibatch)",
               "pass at s', Θ1, Θ2, replay buffer", "minibatch step", "recording",
               "loop (Python)")  # fmt: skip
 clock = time.process_time
