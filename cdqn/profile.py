@@ -1,7 +1,8 @@
-"""Where a controlled population's member-step goes: shares of the time per part.
+"""Where a population's member-step goes: shares of the time per part.
 
     python -m cdqn.profile                                     # CartPole, hinf, K = 10
     python -m cdqn.profile --env mountaincar --controller h2 --steps 3000
+    python -m cdqn.profile --controller ddqn                   # Double DQN
 
 Trains a population (:func:`cdqn.training.population_loop.train_population`, one thread,
 no tracking store) and times, per population step, what the loop calls: the environment
@@ -12,6 +13,11 @@ kernel's controller arithmetic (:mod:`cdqn.control.kernels`) is timed apart afte
 the members' controller arrays and subtracted from the update, which leaves the network's
 share (forward pass at s', Θ1/Θ2, SGD step) with the step's signal row.  Times are CPU
 seconds of this process; the first ``--warmup`` population steps are not counted.
+
+Double DQN (:mod:`cdqn.training.ddqn_population`) has no controller; its update is timed as
+two parts, the per-step kernel (pass at s', Θ1/Θ2, signal row, replay buffer) and the
+minibatch steps, the rest of it (minibatch index draws, target copies) going to the loop's
+share.  Its warm-up should pass ``learning_starts`` (``--warmup 1200``).
 """
 
 from __future__ import annotations
@@ -35,12 +41,13 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 from numba import njit  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
-from cdqn.config import Config, ConfigError, register_configs  # noqa: E402
+from cdqn.config import Config, register_configs  # noqa: E402
 from cdqn.control.factory import make_controller  # noqa: E402
 from cdqn.control.kernels import scheduled_lqr_step, state_space_step, static_gain_u  # noqa: E402
 from cdqn.envs import adopt, env_presets  # noqa: E402
-from cdqn.training import population_loop  # noqa: E402
+from cdqn.training import ddqn_population, population_loop  # noqa: E402
 from cdqn.training.build import build_population, member_config  # noqa: E402
+from cdqn.training.ddqn_population import DDQNPopulation  # noqa: E402
 from cdqn.training.member import Member  # noqa: E402
 from cdqn.training.population_loop import train_population  # noqa: E402
 from cdqn.training.population_step import (  # noqa: E402
@@ -54,6 +61,9 @@ from cdqn.training.signals import SignalBuffer  # noqa: E402
 
 PARTS = ("environment", "exploration", "act (forward at s after a reset, argmax)", "network",
          "controller", "recording", "loop (Python)")  # fmt: skip
+DDQN_PARTS = ("environment", "exploration", "act (pass at s after a reset or minibatch)",
+              "pass at s', Θ1, Θ2, replay buffer", "minibatch step", "recording",
+              "loop (Python)")  # fmt: skip
 clock = time.process_time
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
@@ -64,6 +74,7 @@ class Profile:
 
     member_steps: int = 0
     seconds: dict[str, float] = field(default_factory=lambda: dict.fromkeys(PARTS, 0.0))
+    """Per part (:data:`PARTS`, or :data:`DDQN_PARTS` for Double DQN)."""
     total: float = 0.0
 
     @property
@@ -120,23 +131,20 @@ def profile_population(conf: Config, k: int, steps: int, warmup: int) -> Profile
     setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
     seeds = list(range(conf.seed, conf.seed + k))
     agent, venv = build_population(conf, setup, seeds)
-    if not isinstance(agent, ControlledPopulation):
-        raise ConfigError(
-            f"controller.name={conf.controller.name!r}: the profile takes the controlled agents "
-            "(none, h2, hinf, hinf_f)"
-        )
     cfg = OmegaConf.structured(conf)
     members = [Member(s, member_config(cfg, s)) for s in seeds]
-    prof = Profile()
+    ddqn = isinstance(agent, DDQNPopulation)
+    prof = Profile(seconds=dict.fromkeys(DDQN_PARTS if ddqn else PARTS, 0.0))
     timers = _Timers(prof)
     for m in members:
         m.signals = _TimedSignals()
         m.signals.timers = timers
-    agent.explore.next = timers.wrap("exploration", agent.explore.next)
-    agent.act = timers.wrap("act (forward at s after a reset, argmax)", agent.act, "exploration")
-    agent.update = timers.wrap("network", agent.update)
     venv.step = timers.wrap("environment", venv.step)
     venv.reset = timers.wrap("environment", venv.reset)
+    if isinstance(agent, ControlledPopulation):
+        agent.explore.next = timers.wrap("exploration", agent.explore.next)
+        agent.act = timers.wrap(PARTS[2], agent.act, "exploration")
+        agent.update = timers.wrap("network", agent.update)
     count = {"steps": 0, "t0": 0.0}
 
     def tick() -> bool:
@@ -150,15 +158,36 @@ def profile_population(conf: Config, k: int, steps: int, warmup: int) -> Profile
             return True
         return False
 
-    with _timed_episode_stats(timers):
+    with _timed_episode_stats(timers), _timed_ddqn(agent, timers):
         train_population(agent, venv, members, episodes=10**9, discount=conf.train.discount,
                          q_limit=conf.train.q_limit, should_stop=tick)  # fmt: skip
     prof.total = prof.total or clock() - count["t0"]
-    control = controller_seconds(agent.controller, prof.member_steps)
-    prof.seconds["controller"] = control
-    prof.seconds["network"] -= control
+    if isinstance(agent, ControlledPopulation):
+        control = controller_seconds(agent.controller, prof.member_steps)
+        prof.seconds["controller"] = control
+        prof.seconds["network"] -= control
     prof.seconds["loop (Python)"] = prof.total - sum(prof.seconds.values())
     return prof
+
+
+@contextmanager
+def _timed_ddqn(agent: Any, timers: _Timers) -> Iterator[None]:
+    """A Double DQN population's parts timed (:data:`DDQN_PARTS`); nothing for another."""
+    if not isinstance(agent, DDQNPopulation):
+        yield
+        return
+    for explorer in agent.explorers:
+        explorer.explore = timers.wrap("exploration", explorer.explore)
+    agent.act = timers.wrap(DDQN_PARTS[2], agent.act, "exploration")
+    names = {"_record_kernel": DDQN_PARTS[3], "double_dqn_learn": DDQN_PARTS[4]}
+    originals = {name: getattr(ddqn_population, name) for name in names}
+    for name, part in names.items():
+        setattr(ddqn_population, name, timers.wrap(part, originals[name]))
+    try:
+        yield
+    finally:
+        for name, fn in originals.items():
+            setattr(ddqn_population, name, fn)
 
 
 def controller_seconds(c: ControllerArrays, member_steps: int) -> float:
@@ -224,14 +253,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(prog="python -m cdqn.profile",
                                      description=__doc__.split("\n")[0])  # fmt: skip
     parser.add_argument("--env", default="cartpole")
-    controllers = sorted(
-        p.stem for p in (CONF_DIR / "controller").glob("*.yaml") if p.stem != "ddqn"
-    )
+    controllers = sorted(p.stem for p in (CONF_DIR / "controller").glob("*.yaml"))
     parser.add_argument("--controller", default="hinf", choices=controllers)
     parser.add_argument("--width", type=int, default=2500)
     parser.add_argument("--population", type=int, default=10)
     parser.add_argument("--steps", type=int, default=3000, help="timed population steps")
-    parser.add_argument("--warmup", type=int, default=200, help="untimed population steps")
+    parser.add_argument(
+        "--warmup", type=int, default=200, help="untimed population steps (ddqn: 1200)"
+    )
     args = parser.parse_args(argv)
     conf = profile_config(args.env, args.controller, args.width)
     prof = profile_population(conf, args.population, args.steps, args.warmup)

@@ -19,7 +19,7 @@ from cdqn.network import (
     sgd_deferred_row,
     sgd_row,
 )
-from cdqn.profile import PARTS, profile_config, profile_population
+from cdqn.profile import DDQN_PARTS, PARTS, profile_config, profile_population
 from cdqn.vector_env import ClassicControlTwin, make_vector_env
 
 
@@ -107,3 +107,14 @@ def test_profile_shares_add_up() -> None:
     assert set(prof.shares()) == set(PARTS)
     assert sum(prof.shares().values()) == pytest.approx(1.0)
     assert all(prof.seconds[p] > 0 for p in ("environment", "network", "loop (Python)"))
+
+
+def test_double_dqn_profile_shares_add_up() -> None:
+    """Double DQN's profile times its minibatch steps apart from its per-step kernel."""
+    conf = profile_config("cartpole", "ddqn", 32)
+    conf.controller.learning_starts = 10
+    prof = profile_population(conf, k=3, steps=100, warmup=20)
+    assert prof.member_steps == 300
+    assert set(prof.shares()) == set(DDQN_PARTS)
+    assert sum(prof.shares().values()) == pytest.approx(1.0)
+    assert all(prof.seconds[p] > 0 for p in DDQN_PARTS[:5])
