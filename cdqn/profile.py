@@ -35,7 +35,7 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 from numba import njit  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
-from cdqn.config import Config, ConfigError, register_configs  # noqa: E402
+from cdqn.config import Config, ConfigError, register_configs, to_schema  # noqa: E402
 from cdqn.control.factory import make_controller  # noqa: E402
 from cdqn.control.kernels import scheduled_lqr_step, state_space_step, static_gain_u  # noqa: E402
 from cdqn.envs import adopt, env_presets  # noqa: E402
@@ -95,6 +95,10 @@ class _Timers:
 
         return timed
 
+    def instrument(self, obj: object, method: str, part: str, inner: str | None = None) -> None:
+        """Replace ``obj``'s ``method`` (on this instance only) by :meth:`wrap` of it."""
+        setattr(obj, method, self.wrap(part, getattr(obj, method), inner))
+
 
 class _TimedSignals(SignalBuffer):
     timers: _Timers
@@ -132,11 +136,11 @@ def profile_population(conf: Config, k: int, steps: int, warmup: int) -> Profile
     for m in members:
         m.signals = _TimedSignals()
         m.signals.timers = timers
-    agent.explore.next = timers.wrap("exploration", agent.explore.next)
-    agent.act = timers.wrap("act (forward at s after a reset, argmax)", agent.act, "exploration")
-    agent.update = timers.wrap("network", agent.update)
-    venv.step = timers.wrap("environment", venv.step)
-    venv.reset = timers.wrap("environment", venv.reset)
+    timers.instrument(agent.explore, "next", "exploration")
+    timers.instrument(agent, "act", "act (forward at s after a reset, argmax)", "exploration")
+    timers.instrument(agent, "update", "network")
+    timers.instrument(venv, "step", "environment")
+    timers.instrument(venv, "reset", "environment")
     count = {"steps": 0, "t0": 0.0}
 
     def tick() -> bool:
@@ -217,7 +221,7 @@ def profile_config(env: str, controller: str, width: int) -> Config:
         "train.progress=false",
     ]
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
-        return OmegaConf.to_object(adopt(compose("config", overrides=overrides)).cfg)
+        return to_schema(adopt(compose("config", overrides=overrides)).cfg, Config)
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:

@@ -58,6 +58,7 @@ that also feed the measurements.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -151,7 +152,7 @@ class _Signals:
     weight's own states (``r``: W_r, ``q``: W_Q̂, ``c1``/``c2``: the cover on Q1/Q2, ``p``: W_p,
     ``u``: W_u)."""
 
-    def __init__(self, n_q: int, blocks: dict[str, tuple[np.ndarray, ...]]) -> None:
+    def __init__(self, n_q: int, blocks: Mapping[str, tuple[np.ndarray, ...]]) -> None:
         self.blocks = blocks
         sizes = {"Q": n_q, "i": 1} | {k: v[0].shape[0] for k, v in blocks.items()}
         self.idx: dict[str, slice] = {}
