@@ -524,7 +524,14 @@ def _acrobot_rk4(state, action, params, two, obs, reward, terminated):
         obs[k, 4], obs[k, 5] = y[2], y[3]
 
 
-def _acrobot_kernel(state, action, params, obs, reward, terminated) -> None:
+def _acrobot_kernel(
+    state: np.ndarray,
+    action: np.ndarray,
+    params: np.ndarray,
+    obs: np.ndarray,
+    reward: np.ndarray,
+    terminated: np.ndarray,
+) -> None:
     """gymnasium ``AcrobotEnv.step`` (one RK4 step of ``dt``, wrap, bound) for every member,
     in place (:func:`_acrobot_rk4`)."""
     _acrobot_rk4(state, action, params, 2.0, obs, reward, terminated)

@@ -60,7 +60,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import slycot
@@ -313,7 +313,8 @@ def generalized_plant(
     return GeneralizedPlant(StateSpaceMatrices(A, B, C, D), sig.nw, len(PERFORMANCE))
 
 
-def _sb10ad(P: GeneralizedPlant, gamma: float):
+def _sb10ad(P: GeneralizedPlant, gamma: float) -> tuple[Any, ...]:
+    """SLICOT SB10AD at ``gamma``: its outputs (``out[5]`` is the closed loop's ``A``)."""
     s = P.sys
     return slycot.sb10ad(
         s.nstates,
@@ -341,7 +342,7 @@ def hinf_bisection(
     calls = 0
     last_error = ""
 
-    def attempt(g: float):
+    def attempt(g: float) -> tuple[Any, ...] | None:
         nonlocal calls, last_error
         calls += 1
         try:

@@ -183,7 +183,9 @@ def static_closed_loop(
     return p.A + np.outer(p.B_u, [-k1, -k2, k3])
 
 
-def conserved_direction(theta1: float, theta2: float, plant: str = DEFAULT_PLANT):
+def conserved_direction(
+    theta1: float, theta2: float, plant: str = DEFAULT_PLANT
+) -> np.ndarray | None:
     """``ℓ = [Θ2, −Θ1]`` on ``[Q1, Q2]`` for the gradient-flow plant (``ℓ Q`` is constant on
     every closed loop), ``None`` for the paper's plant (module docstring)."""
     check_plant(plant)

@@ -49,7 +49,8 @@ from cdqn.training.divergence import (
     failure_reason,
     replay_failed,
 )
-from cdqn.training.loop import EpisodeStats, episode_stats
+from cdqn.training.loop import EpisodeStats
+from cdqn.training.loop import episode_stats as episode_stats  # cdqn.profile times it here
 from cdqn.training.member import Member
 from cdqn.training.population_step import CHECK, DONE, ControlledPopulation
 from cdqn.training.signals import COLUMNS
