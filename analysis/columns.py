@@ -10,7 +10,7 @@ setting *differs* in a column when two agents' texts differ or one agent's runs 
 from __future__ import annotations
 
 from collections.abc import Iterable
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import pandas as pd
 
@@ -39,18 +39,16 @@ class Difference(NamedTuple):
         return f"{env_text(self.env)}: {self.key} differs: {'; '.join(parts)}"
 
 
-def seed_text(seeds: Iterable[object]) -> str:
-    """``[0, 1, 2, 5]`` -> ``0–2, 5``."""
+def seed_text(seeds: Iterable[Any]) -> str:
+    """``[0, 1, 2, 5]`` -> ``0–2, 5`` (missing values left out)."""
     values = sorted({int(s) for s in seeds if pd.notna(s)})
-    parts: list[str] = []
-    start = prev = None
-    for s in [*values, None]:
-        if start is not None and (s is None or s != prev + 1):
-            parts.append(str(start) if start == prev else f"{start}–{prev}")
-            start = None
-        if s is not None and start is None:
-            start = s
-        prev = s
+    runs: list[list[int]] = []
+    for s in values:
+        if runs and s == runs[-1][-1] + 1:
+            runs[-1].append(s)
+        else:
+            runs.append([s])
+    parts = [str(r[0]) if len(r) == 1 else f"{r[0]}–{r[-1]}" for r in runs]
     return ", ".join(parts) or "none"
 
 

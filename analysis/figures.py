@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import cached_property, partial
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -589,7 +589,7 @@ class FigureSpec(NamedTuple):
 def figure_specs(ctx: FigureContext) -> Iterator[FigureSpec]:
     """Every figure for this store, in the paper's order."""
     for env in ordered([*ctx.envs, *ENV_ORDER], ENV_ORDER):
-        yield FigureSpec(f"{env_file_prefix(env)}_learning", lambda c, e=env: learning(c, e))
+        yield FigureSpec(f"{env_file_prefix(env)}_learning", partial(learning, env=env))
     prefix = env_file_prefix(ctx.selection.env)
     yield FigureSpec(f"{prefix}_loss", loss)
     yield FigureSpec(f"{prefix}_Q500", q_window)

@@ -73,10 +73,10 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 import torch  # noqa: E402
 from hydra import compose, initialize_config_dir  # noqa: E402
-from omegaconf import DictConfig, OmegaConf  # noqa: E402
+from omegaconf import DictConfig  # noqa: E402
 
 from cdqn.agents.base import EpsilonGreedy  # noqa: E402
-from cdqn.config import CONF_DIR, Config, register_configs  # noqa: E402
+from cdqn.config import CONF_DIR, Config, register_configs, to_schema  # noqa: E402
 from cdqn.control.factory import make_controller  # noqa: E402
 from cdqn.envs import adopt, env_presets, env_sizes, make_env  # noqa: E402
 from cdqn.network import NetworkSpec, QNetwork  # noqa: E402
@@ -256,7 +256,7 @@ def compose_config(overrides: list[str]) -> DictConfig:
 
 
 def _conf(cfg: DictConfig) -> Config:
-    return OmegaConf.to_object(cfg)
+    return to_schema(cfg, Config)
 
 
 def measure_floor(cfg: DictConfig, steps: int, warmup: int) -> Throughput:
@@ -323,6 +323,9 @@ def measure_single(cfg: DictConfig, uri: str, steps: int, warmup: int) -> Throug
                     rec.flush()  # the warm-up's metrics
                 window[1:] = [(st.total_steps, st.episode, clock())]
 
+        def should_stop(st: TrainState = state, before: int = done) -> bool:
+            return before + st.total_steps >= warmup + steps
+
         try:
             train(
                 env,
@@ -335,7 +338,7 @@ def measure_single(cfg: DictConfig, uri: str, steps: int, warmup: int) -> Throug
                 state=state,
                 on_episode=on_episode,
                 progress=False,
-                should_stop=lambda st=state, d=done: d + st.total_steps >= warmup + steps,
+                should_stop=should_stop,
             )
         except DivergenceError:
             seed += 1_000

@@ -49,6 +49,7 @@ from cdqn.config import (
     EnvConfig,
     EvaluateConfig,
     register_configs,
+    to_schema,
     validate_evaluate,
 )
 
@@ -121,7 +122,7 @@ def _check_env(key: str) -> None:
 
 def check_evaluate(cfg: DictConfig) -> None:
     """What ``python -m cdqn.evaluate`` refuses."""
-    validate_evaluate(OmegaConf.to_object(cfg))
+    validate_evaluate(to_schema(cfg, EvaluateConfig))
 
 
 def preflight(

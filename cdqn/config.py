@@ -16,10 +16,12 @@ from __future__ import annotations
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
+
+T = TypeVar("T")
 
 
 def _conf_dir() -> Path:
@@ -797,6 +799,28 @@ def register_configs() -> None:
     cs.store(name="base_config", node=Config)
     cs.store(name="base_evaluate", node=EvaluateConfig)
     cs.store(name="base_synthesize", node=SynthesizeConfig)
+
+
+def of_kind(value: object, kind: type[T]) -> T:
+    """``value``, which is a ``kind`` (an internal invariant: :class:`TypeError` if not)."""
+    if not isinstance(value, kind):
+        raise TypeError(f"a {type(value).__name__} where a {kind.__name__} belongs")
+    return value
+
+
+def to_schema(cfg: DictConfig, kind: type[T]) -> T:
+    """``cfg`` as its schema's dataclass ``kind`` (``OmegaConf.to_object``)."""
+    return of_kind(OmegaConf.to_object(cfg), kind)
+
+
+def to_plain(cfg: DictConfig) -> dict[str, Any]:
+    """``cfg`` as plain dicts and lists, interpolations resolved."""
+    return of_kind(OmegaConf.to_container(cfg, resolve=True), dict)
+
+
+def merged(*cfgs: Any) -> DictConfig:
+    """``OmegaConf.merge`` of configurations whose first is a mapping (so is the result)."""
+    return of_kind(OmegaConf.merge(*cfgs), DictConfig)
 
 
 def validate(cfg: Config) -> None:

@@ -55,6 +55,7 @@ import sys
 import tempfile
 from pathlib import Path
 from types import ModuleType
+from typing import TypedDict
 
 import numpy as np
 from numba import njit
@@ -69,7 +70,14 @@ def minibatch_macs(batch: int, n_obs: int, n_actions: int, width: int) -> int:
     return batch * width * (3 * (n_obs + n_actions) + n_obs + 2 * n_actions)
 
 
-_JIT = {"cache": True, "fastmath": {"reassoc", "contract"}}
+class JitOptions(TypedDict):
+    """The options given to ``numba.njit``."""
+
+    cache: bool
+    fastmath: set[str]
+
+
+_JIT: JitOptions = {"cache": True, "fastmath": {"reassoc", "contract"}}
 
 
 @njit(**_JIT)

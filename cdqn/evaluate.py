@@ -40,8 +40,10 @@ from cdqn.config import (
     ConfigError,
     EnvConfig,
     EvaluateConfig,
+    merged,
     register_configs,
     resolve_tracking_uri,
+    to_schema,
     validate_evaluate,
 )
 from cdqn.envs import make_env
@@ -140,8 +142,8 @@ def _env_config(client: MlflowClient, run_id: str, tmp: Path) -> EnvConfig:
     try:
         path = client.download_artifacts(run_id, CONFIG_ARTIFACT, str(tmp))
         stored = OmegaConf.load(path)
-        env = OmegaConf.merge(OmegaConf.structured(EnvConfig), stored.env)
-        return OmegaConf.to_object(env)
+        env = merged(OmegaConf.structured(EnvConfig), stored.env)
+        return to_schema(env, EnvConfig)
     except Exception:
         params = client.get_run(run_id).data.params
         if "env.id" not in params:
@@ -193,7 +195,7 @@ def _log(client: MlflowClient, result: EvalResult, params: dict[str, str]) -> No
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="evaluate")
 def main(cfg: DictConfig) -> float:
-    conf: EvaluateConfig = OmegaConf.to_object(cfg)
+    conf = to_schema(cfg, EvaluateConfig)
     try:
         result = evaluate(conf)
     except ConfigError as err:

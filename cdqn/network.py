@@ -54,6 +54,8 @@ import torch
 from numba import njit
 from torch import nn
 
+from cdqn.ddqn_kernels import JitOptions
+
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
 
@@ -139,7 +141,7 @@ class TDTerms(NamedTuple):
     """``∂Q_a(s)/∂b_1 = W_2[a] ⊙ [p > 0]``, shape ``(K, width)``, reused by the step."""
 
 
-_JIT = {"cache": True, "fastmath": {"reassoc", "contract"}}
+_JIT: JitOptions = {"cache": True, "fastmath": {"reassoc", "contract"}}
 """Compiled once per process (and cached on disk).  ``reassoc`` lets the sums over the
 hidden units run as vectorised partial sums: the same code for every member and every
 population size, so a member's numbers never depend on ``K`` (``tests/test_fast_path.py``)."""

@@ -41,7 +41,7 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 from numba import njit  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
-from cdqn.config import Config, register_configs  # noqa: E402
+from cdqn.config import Config, register_configs, to_schema  # noqa: E402
 from cdqn.control.factory import make_controller  # noqa: E402
 from cdqn.control.kernels import scheduled_lqr_step, state_space_step, static_gain_u  # noqa: E402
 from cdqn.envs import adopt, env_presets  # noqa: E402
@@ -106,6 +106,10 @@ class _Timers:
 
         return timed
 
+    def instrument(self, obj: object, method: str, part: str, inner: str | None = None) -> None:
+        """Replace ``obj``'s ``method`` (on this instance only) by :meth:`wrap` of it."""
+        setattr(obj, method, self.wrap(part, getattr(obj, method), inner))
+
 
 class _TimedSignals(SignalBuffer):
     timers: _Timers
@@ -139,12 +143,12 @@ def profile_population(conf: Config, k: int, steps: int, warmup: int) -> Profile
     for m in members:
         m.signals = _TimedSignals()
         m.signals.timers = timers
-    venv.step = timers.wrap("environment", venv.step)
-    venv.reset = timers.wrap("environment", venv.reset)
+    timers.instrument(venv, "step", "environment")
+    timers.instrument(venv, "reset", "environment")
     if isinstance(agent, ControlledPopulation):
-        agent.explore.next = timers.wrap("exploration", agent.explore.next)
-        agent.act = timers.wrap(PARTS[2], agent.act, "exploration")
-        agent.update = timers.wrap("network", agent.update)
+        timers.instrument(agent.explore, "next", "exploration")
+        timers.instrument(agent, "act", PARTS[2], "exploration")
+        timers.instrument(agent, "update", "network")
     count = {"steps": 0, "t0": 0.0}
 
     def tick() -> bool:
@@ -177,8 +181,8 @@ def _timed_ddqn(agent: Any, timers: _Timers) -> Iterator[None]:
         yield
         return
     for explorer in agent.explorers:
-        explorer.explore = timers.wrap("exploration", explorer.explore)
-    agent.act = timers.wrap(DDQN_PARTS[2], agent.act, "exploration")
+        timers.instrument(explorer, "explore", "exploration")
+    timers.instrument(agent, "act", DDQN_PARTS[2], "exploration")
     names = {"_record_kernel": DDQN_PARTS[3], "double_dqn_learn": DDQN_PARTS[4]}
     originals = {name: getattr(ddqn_population, name) for name in names}
     for name, part in names.items():
@@ -246,7 +250,7 @@ def profile_config(env: str, controller: str, width: int) -> Config:
         "train.progress=false",
     ]
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
-        return OmegaConf.to_object(adopt(compose("config", overrides=overrides)).cfg)
+        return to_schema(adopt(compose("config", overrides=overrides)).cfg, Config)
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:

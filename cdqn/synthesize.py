@@ -23,7 +23,7 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig
 
-from cdqn.config import CONF_DIR, ConfigError, SynthesizeConfig, register_configs
+from cdqn.config import CONF_DIR, ConfigError, SynthesizeConfig, of_kind, register_configs
 from cdqn.control.errors import DesignError
 
 log = logging.getLogger("cdqn.synthesize")
@@ -37,11 +37,13 @@ def h2_report(conf: SynthesizeConfig, out: Path) -> str:
     from cdqn.control.design import box_from_config
     from cdqn.control.factory import make_controller
     from cdqn.control.h2 import scheduled_gains
+    from cdqn.control.runtime import ScheduledLQR
 
     setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
     record = dict(setup.design)
     box = box_from_config(conf.weights.theta_bounds)
     ctrl = setup.controller
+    assert isinstance(ctrl, ScheduledLQR)  # controller=h2
     pts = np.vstack([box.corners(), [box.nominal]])
     gains = scheduled_gains(pts, conf.train.discount, ctrl.w_x, ctrl.w_c, ctrl.research_map,
                             ctrl.target)  # fmt: skip
@@ -80,7 +82,7 @@ def synthesize(cfg: DictConfig) -> str:
     adopted = adopt(cfg)  # env.id=<id>: that environment's cap, threshold and NTK box
     if adopted.change is not None:
         log.info("%s", adopted.change)
-    conf: SynthesizeConfig = adopted.conf
+    conf = of_kind(adopted.conf, SynthesizeConfig)
     out = Path(conf.out)
     if conf.controller.name == "h2":
         return h2_report(conf, out)

@@ -21,10 +21,10 @@ import sys
 import hydra
 from omegaconf import DictConfig
 
-from cdqn.config import CONF_DIR, ConfigError
+from cdqn.config import CONF_DIR, ConfigError, of_kind
 from cdqn.control.errors import DesignError
 from cdqn.tuning.report import summary_text
-from cdqn.tuning.settings import validate_tune
+from cdqn.tuning.settings import TuneConfig, validate_tune
 from cdqn.tuning.study import Study
 
 log = logging.getLogger("cdqn.tune")
@@ -36,7 +36,7 @@ def check_tune(cfg: DictConfig) -> None:
     entry point that cannot be imported)."""
     from cdqn.envs import adopt, make_env
 
-    conf = adopt(cfg).conf
+    conf = of_kind(adopt(cfg).conf, TuneConfig)
     validate_tune(conf)
     make_env(conf.env).close()
 

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
 from math import pi
 from typing import Any, NamedTuple, Protocol
 
@@ -182,10 +183,10 @@ class GymLoop:
     def state_dict(self, i: int) -> dict[str, Any]:
         """Member ``i``'s environment between two steps (classic control only)."""
         env = self.envs[i]
-        base = env.unwrapped
+        base = _classic(env)
         out = {"state": np.array(base.state, dtype=np.float64), "np_random": _rng_state(env),
                "elapsed": int(getattr(_time_limit(env), "_elapsed_steps", 0) or 0)}  # fmt: skip
-        if hasattr(base, "steps_beyond_terminated"):
+        if isinstance(base, CartPoleEnv):  # the one of the three that counts steps beyond
             out["beyond"] = (
                 -1 if base.steps_beyond_terminated is None else int(base.steps_beyond_terminated)
             )
@@ -193,15 +194,23 @@ class GymLoop:
 
     def load_state_dict(self, i: int, state: dict[str, Any]) -> None:
         env = self.envs[i]
-        base = env.unwrapped
+        base = _classic(env)
         _set_rng_state(env, state["np_random"])
         base.state = np.array(state["state"], dtype=np.float64)
-        if "beyond" in state:
+        if "beyond" in state and isinstance(base, CartPoleEnv):
             base.steps_beyond_terminated = None if state["beyond"] < 0 else state["beyond"]
         limit = _time_limit(env)
         if limit is not None:
             limit._elapsed_steps = state["elapsed"]
         _mark_reset(env)
+
+
+def _classic(env: gym.Env) -> CartPoleEnv | AcrobotEnv | MountainCarEnv:
+    """``env``'s classic control environment, whose whole state is ``state``."""
+    base = env.unwrapped
+    if not isinstance(base, ClassicControlTwin.KINDS):
+        raise TypeError(f"{type(base).__name__} cannot be captured between two steps")
+    return base
 
 
 def _time_limit(env: gym.Env) -> TimeLimit | None:
@@ -224,7 +233,7 @@ def _mark_reset(env: gym.Env) -> None:
 
 
 def _rng_state(env: gym.Env) -> dict[str, Any]:
-    return env.unwrapped.np_random.bit_generator.state
+    return dict(env.unwrapped.np_random.bit_generator.state)
 
 
 def _set_rng_state(env: gym.Env, state: dict[str, Any]) -> None:
@@ -249,19 +258,19 @@ class ClassicControlTwin:
         self.state = np.zeros((len(envs), {CartPoleEnv: 4, AcrobotEnv: 4}.get(self.kind, 2)))
         self.elapsed = np.zeros(len(envs), dtype=np.int64)
         e = self.base
-        if self.kind is CartPoleEnv:
+        if isinstance(e, CartPoleEnv):
             self.params = np.array([
                 e.force_mag, e.gravity, e.masspole, e.total_mass, e.length, e.polemass_length,
                 e.tau, e.kinematics_integrator == "euler", e.x_threshold,
                 e.theta_threshold_radians,
             ], dtype=np.float64)  # fmt: skip
-        elif self.kind is AcrobotEnv:
+        elif isinstance(e, AcrobotEnv):
             self.params = np.array([
                 e.LINK_MASS_1, e.LINK_MASS_2, e.LINK_LENGTH_1, e.LINK_COM_POS_1,
                 e.LINK_COM_POS_2, e.LINK_MOI, e.dt, e.MAX_VEL_1, e.MAX_VEL_2,
                 e.book_or_nips == "nips", *e.AVAIL_TORQUE,
             ], dtype=np.float64)  # fmt: skip
-        elif self.kind is MountainCarEnv:
+        elif isinstance(e, MountainCarEnv):
             self.params = np.array([
                 e.force, e.gravity, e.max_speed, e.min_position, e.max_position,
                 e.goal_position, e.goal_velocity,
@@ -296,7 +305,7 @@ class ClassicControlTwin:
 
     def reset(self, i: int, seed: int | None) -> np.ndarray:
         obs = self.envs[i].reset(seed=seed)[0]
-        self.state[i] = self.bases[i].state
+        self.state[i] = _classic(self.envs[i]).state
         self.elapsed[i] = 0
         return obs
 
@@ -515,7 +524,14 @@ def _acrobot_rk4(state, action, params, two, obs, reward, terminated):
         obs[k, 4], obs[k, 5] = y[2], y[3]
 
 
-def _acrobot_kernel(state, action, params, obs, reward, terminated) -> None:
+def _acrobot_kernel(
+    state: np.ndarray,
+    action: np.ndarray,
+    params: np.ndarray,
+    obs: np.ndarray,
+    reward: np.ndarray,
+    terminated: np.ndarray,
+) -> None:
     """gymnasium ``AcrobotEnv.step`` (one RK4 step of ``dt``, wrap, bound) for every member,
     in place (:func:`_acrobot_rk4`)."""
     _acrobot_rk4(state, action, params, 2.0, obs, reward, terminated)
@@ -545,7 +561,7 @@ def _libm(x, two, out):
         out[i, 0], out[i, 1], out[i, 2] = math.cos(x[i]), math.sin(x[i]), x[i] ** two
 
 
-_KERNELS = {
+_KERNELS: dict[type[gym.Env], Callable[..., None]] = {
     CartPoleEnv: _cartpole_kernel,
     AcrobotEnv: _acrobot_kernel,
     MountainCarEnv: _mountaincar_kernel,

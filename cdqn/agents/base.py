@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple, Protocol
+from collections.abc import Iterator
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 from numba import njit
 
 from cdqn.config import TrainConfig
+
+if TYPE_CHECKING:
+    from cdqn.agents.episodic_replay import Transitions
 
 
 class StepRecord(NamedTuple):
@@ -31,7 +35,8 @@ class StepRecord(NamedTuple):
 class Agent(Protocol):
     """A learning agent driven by :func:`cdqn.training.loop.train`."""
 
-    epsilon: float
+    @property
+    def epsilon(self) -> float: ...
 
     def act(self, obs: np.ndarray) -> int: ...
 
@@ -44,6 +49,13 @@ class Agent(Protocol):
     def state_dict(self) -> dict[str, Any]: ...
 
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
+@runtime_checkable
+class ReplayAgent(Agent, Protocol):
+    """An agent that can learn again from an episode's last transitions (episodic replay)."""
+
+    def replay(self, tail: Transitions, repeats: int) -> Iterator[StepRecord]: ...
 
 
 class EpsilonGreedy:

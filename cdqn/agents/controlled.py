@@ -26,7 +26,7 @@ import torch
 
 from cdqn.agents.base import EpsilonGreedy, StepRecord
 from cdqn.config import TrainConfig
-from cdqn.control.runtime import RuntimeController, ScheduledLQR, StaticGain
+from cdqn.control.runtime import RuntimeController, ScheduledLQR, StateSpace, StaticGain
 from cdqn.network import FastTwoLayer, Forward, QNetwork
 
 if TYPE_CHECKING:
@@ -165,6 +165,7 @@ class ControlledAgent:
         self.explorer.epsilon = state["epsilon"]
         self.explorer.rng.bit_generator.state = state["rng"]
         if state["controller"] is not None:
+            assert isinstance(self.controller, StateSpace)  # the one controller with a state
             self.controller.x[:] = state["controller"]
 
 

@@ -314,7 +314,9 @@ def cached_design(
     return json.loads(record.read_text()), entry
 
 
-def runtime_from_record(record: dict[str, Any], lr: float, cfg: ControllerConfig):
+def runtime_from_record(
+    record: dict[str, Any], lr: float, cfg: ControllerConfig
+) -> StaticGain | StateSpace:
     """The runtime controller of a controller.json record."""
     D = np.asarray(record["D"], float).reshape(1, 3)
     if not record["A"]:

@@ -58,8 +58,9 @@ that also feed the measurements.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import slycot
@@ -151,7 +152,7 @@ class _Signals:
     weight's own states (``r``: W_r, ``q``: W_Q̂, ``c1``/``c2``: the cover on Q1/Q2, ``p``: W_p,
     ``u``: W_u)."""
 
-    def __init__(self, n_q: int, blocks: dict[str, tuple[np.ndarray, ...]]) -> None:
+    def __init__(self, n_q: int, blocks: Mapping[str, tuple[np.ndarray, ...]]) -> None:
         self.blocks = blocks
         sizes = {"Q": n_q, "i": 1} | {k: v[0].shape[0] for k, v in blocks.items()}
         self.idx: dict[str, slice] = {}
@@ -312,7 +313,8 @@ def generalized_plant(
     return GeneralizedPlant(StateSpaceMatrices(A, B, C, D), sig.nw, len(PERFORMANCE))
 
 
-def _sb10ad(P: GeneralizedPlant, gamma: float):
+def _sb10ad(P: GeneralizedPlant, gamma: float) -> tuple[Any, ...]:
+    """SLICOT SB10AD at ``gamma``: its outputs (``out[5]`` is the closed loop's ``A``)."""
     s = P.sys
     return slycot.sb10ad(
         s.nstates,
@@ -340,7 +342,7 @@ def hinf_bisection(
     calls = 0
     last_error = ""
 
-    def attempt(g: float):
+    def attempt(g: float) -> tuple[Any, ...] | None:
         nonlocal calls, last_error
         calls += 1
         try:

@@ -75,6 +75,7 @@ fails the certificate.  On the paper's plant ``ℓ B_u = Θ1Θ2 ≠ 0``: nothing
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import NamedTuple
 
 import numpy as np
@@ -92,6 +93,12 @@ def check_plant(plant: str) -> str:
     if plant not in PLANTS:
         raise DesignError(f"controller.synthesis.plant={plant!r}: allowed {', '.join(PLANTS)}")
     return plant
+
+
+def gain_triple(values: Iterable[float]) -> tuple[float, float, float]:
+    """The static gains ``(k1, k2, k3)`` of ``values`` (three numbers) as floats."""
+    k1, k2, k3 = (float(v) for v in values)
+    return k1, k2, k3
 
 
 class LinearPlant(NamedTuple):
@@ -176,7 +183,9 @@ def static_closed_loop(
     return p.A + np.outer(p.B_u, [-k1, -k2, k3])
 
 
-def conserved_direction(theta1: float, theta2: float, plant: str = DEFAULT_PLANT):
+def conserved_direction(
+    theta1: float, theta2: float, plant: str = DEFAULT_PLANT
+) -> np.ndarray | None:
     """``ℓ = [Θ2, −Θ1]`` on ``[Q1, Q2]`` for the gradient-flow plant (``ℓ Q`` is constant on
     every closed loop), ``None`` for the paper's plant (module docstring)."""
     check_plant(plant)

@@ -10,14 +10,16 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
 
 from cdqn.control.box import NTKBox
 from cdqn.control.weights import SisoWeight
 
 
 def _finish(
-    fig: plt.Figure,
-    ax: plt.Axes,
+    fig: Figure,
+    ax: Axes,
     path: Path,
     xlabel: str,
     ylabel: str,

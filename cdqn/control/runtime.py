@@ -13,6 +13,7 @@ import numpy as np
 import scipy.linalg
 
 from cdqn.control.kernels import scheduled_lqr_step, state_space_step, static_gain_u
+from cdqn.control.plant import gain_triple
 
 
 class RuntimeController(Protocol):
@@ -90,7 +91,7 @@ class ScheduledLQR:
     @property
     def gains(self) -> tuple[float, float, float]:
         """The gains (k1, k2, k3) of the last step that had an LQR solution."""
-        return tuple(self._gains.tolist())
+        return gain_triple(self._gains.tolist())
 
     def reset(self) -> None:
         pass

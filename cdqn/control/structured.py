@@ -43,6 +43,7 @@ from cdqn.control.plant import (
     DEFAULT_PLANT,
     check_plant,
     control_input_batch,
+    gain_triple,
     reduce_batch,
     reduction_basis,
 )
@@ -331,10 +332,10 @@ def tune_fixed_structure(
         )
         best_k = k
         bad = [int(i) for i in np.argsort(-viol) if viol[i] >= 0 and i not in active]
-        worst = int(np.argmax(norms))
-        if not bad and worst in active:
+        largest = int(np.argmax(norms))
+        if not bad and largest in active:
             break
-        active += bad[:4] + ([worst] if worst not in active else [])
+        active += bad[:4] + ([largest] if largest not in active else [])
         candidates = [k]
     within = "" if target is None else f" within the learning target {target.to_dict()}"
     if best_k is None:
@@ -356,7 +357,7 @@ def tune_fixed_structure(
     if np.isfinite(start_obj):
         start_exact = float(np.max(all_loops.exact_norms(tuple(first))))
         if start_exact <= worst:
-            gains, worst, objective = tuple(float(v) for v in first), start_exact, start_obj
+            gains, worst, objective = gain_triple(first), start_exact, start_obj
     start = (float(first[0]), float(first[1]), float(first[2]))
     return FixedStructureResult(gains, worst, start, start_obj, objective, len(starts))
 
@@ -383,7 +384,7 @@ def default_starts(
     ``1/ρ_max``) and ``k3`` as above."""
     check_plant(plant)
     rng = np.random.default_rng(seed)
-    out = [tuple(float(v) for v in first)]
+    out = [gain_triple(first)]
     if target is not None:
         k1, k2 = target.project(first[0], first[1], discount)
         k3 = first[2] if first[2] > 0 else 0.1

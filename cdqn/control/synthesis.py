@@ -51,7 +51,7 @@ from cdqn.control.hinf import (
     lft_closed_loop,
     sigma,
 )
-from cdqn.control.plant import check_plant
+from cdqn.control.plant import check_plant, gain_triple
 from cdqn.control.reduction import hankel, truncate
 from cdqn.control.structured import (
     FixedStructureWeights,
@@ -286,7 +286,7 @@ def _design_hinf_f(inputs: DesignInputs, samples: np.ndarray, cover: CoverFit) -
     noise = (float(syn["noise"][0]), float(syn["noise"][1]))
     weights = FixedStructureWeights(ws["w_p"], ws["w_u"], ws["w_r"], ws["w_qhat"], noise)
     if syn.get("start") is not None:
-        first = tuple(float(v) for v in syn["start"])
+        first = gain_triple(syn["start"])
         start_source = "synthesis.start"
     else:
         try:

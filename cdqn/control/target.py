@@ -72,7 +72,10 @@ class TargetBox:
     @classmethod
     def of(cls, cfg: Any) -> TargetBox:
         """From ``weights.target`` (a :class:`cdqn.config.LearningTarget` or a dict)."""
-        get = cfg.get if isinstance(cfg, dict) else lambda k: getattr(cfg, k)
+
+        def get(key: str) -> Any:
+            return cfg.get(key) if isinstance(cfg, dict) else getattr(cfg, key)
+
         g, s = get("gamma_eff"), get("step_scale")
         cap = (
             get("rho_cap")

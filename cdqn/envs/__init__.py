@@ -9,7 +9,8 @@
   observations, feature subset, scaling, radial basis features.
 """
 
-from cdqn.envs.adopt import BOX_SOURCES, CONF_DIR, Adopted, adopt, env_presets
+from cdqn.config import CONF_DIR
+from cdqn.envs.adopt import BOX_SOURCES, Adopted, adopt, env_presets
 from cdqn.envs.make import EXTRAS, EnvId, env_label, env_sizes, make_env, registration
 from cdqn.envs.wrappers import ObservationScale, ObservationSubset, OneHot, RadialFeatures
 

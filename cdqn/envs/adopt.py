@@ -57,7 +57,16 @@ import yaml
 from gymnasium.envs.registration import EnvSpec
 from omegaconf import DictConfig, OmegaConf, read_write
 
-from cdqn.config import CONF_DIR, Config, ConfigError, EnvConfig, WeightsConfig, validate
+from cdqn.config import (
+    CONF_DIR,
+    Config,
+    ConfigError,
+    EnvConfig,
+    WeightsConfig,
+    merged,
+    to_schema,
+    validate,
+)
 from cdqn.envs.make import env_label, registration
 
 _COMMAND_LINE: ContextVar[tuple[str, ...] | None] = ContextVar("cdqn_overrides", default=None)
@@ -112,7 +121,7 @@ def adopt(cfg: DictConfig) -> Adopted:
             f"env.max_episode_steps=null: {env.id} is registered without an episode cap "
             "(max_episode_steps) and none was given; give one, env.max_episode_steps=<steps>"
         )
-    conf: Config = OmegaConf.to_object(out)
+    conf = to_schema(out, Config)
     validate(conf)
     head = ""
     if preset is not None and preset.id != env.id:
@@ -132,12 +141,12 @@ def env_presets(conf_dir: Path = CONF_DIR) -> dict[str, EnvConfig]:
         node = OmegaConf.load(folder / f"{stem}.yaml")
         assert isinstance(node, DictConfig)
         bases = [d for d in node.pop("defaults", []) if d != "_self_"]
-        return OmegaConf.merge(*[load(b) for b in bases], node)
+        return merged(*[load(b) for b in bases], node)
 
     out: dict[str, EnvConfig] = {}
     for path in sorted(folder.glob("*.yaml")):
-        preset = OmegaConf.merge(OmegaConf.structured(EnvConfig), load(path.stem))
-        env: EnvConfig = OmegaConf.to_object(preset)
+        preset = merged(OmegaConf.structured(EnvConfig), load(path.stem))
+        env = to_schema(preset, EnvConfig)
         out[env.name] = env
     return out
 

@@ -22,7 +22,7 @@ import numpy as np
 from gymnasium.envs.registration import EnvSpec
 from gymnasium.spaces import Box, Discrete
 
-from cdqn.config import ConfigError, EnvConfig
+from cdqn.config import ConfigError, EnvConfig, of_kind
 from cdqn.envs.wrappers import (
     ActionStart,
     ObservationScale,
@@ -137,7 +137,7 @@ def _make(env_id: str, kwargs: dict[str, Any], cap: int | None) -> gym.Env:
     """``gymnasium.make`` of a registered id, with a missing optional dependency or
     constructor arguments it refuses as a :class:`ConfigError`."""
     spec = registration(env_id)
-    extra = {} if cap is None else {"max_episode_steps": cap}
+    extra: dict[str, Any] = {} if cap is None else {"max_episode_steps": cap}
     try:
         return gym.make(spec.id, **extra, **kwargs)
     except gym.error.DependencyNotInstalled as err:
@@ -205,7 +205,7 @@ def make_env(cfg: EnvConfig) -> gym.Env:
         env = ObservationSubset(env, list(cfg.obs_indices))
     if cfg.normalize:
         widths = cfg.normalize_scale
-        n = env.observation_space.shape[0]
+        n = of_kind(env.observation_space, Box).shape[0]
         if widths is not None and (len(widths) != n or not all(w > 0 for w in widths)):
             env.close()
             raise ConfigError(
@@ -251,4 +251,4 @@ def _count_text(count: int) -> str:
 def env_sizes(env: gym.Env) -> tuple[int, int]:
     """(observation size, number of actions)."""
     assert isinstance(env.action_space, Discrete)
-    return int(env.observation_space.shape[0]), int(env.action_space.n)
+    return int(of_kind(env.observation_space, Box).shape[0]), int(env.action_space.n)

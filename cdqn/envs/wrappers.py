@@ -11,6 +11,8 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.spaces import Box, Discrete, Space, Tuple
 
+from cdqn.config import of_kind
+
 
 def real_dtype(space: Box) -> np.dtype:
     """The dtype of a map of ``space``'s observations: its own when it is a floating one, else
@@ -47,11 +49,12 @@ class OneHot(gym.ObservationWrapper):
     def parts(space: Space) -> tuple[list[int], list[int]]:
         """Sizes ``n`` and first values ``start`` of the ``Discrete`` parts of ``space``."""
         spaces = space.spaces if isinstance(space, Tuple) else (space,)
-        return [int(s.n) for s in spaces], [int(s.start) for s in spaces]
+        discrete = [of_kind(s, Discrete) for s in spaces]
+        return [int(s.n) for s in discrete], [int(s.start) for s in discrete]
 
     def observation(self, observation: object) -> np.ndarray:
         values = observation if isinstance(observation, tuple) else (observation,)
-        out = np.zeros(self.observation_space.shape, dtype=np.float32)
+        out = np.zeros(int(sum(self.sizes)), dtype=np.float32)
         for offset, start, value in zip(self.offsets, self.starts, values, strict=True):
             out[offset + int(value) - start] = 1.0
         return out

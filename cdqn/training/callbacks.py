@@ -21,6 +21,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
+from cdqn.config import of_kind
 from cdqn.training.result import RunResult, solve_text
 
 log = logging.getLogger("cdqn")
@@ -48,7 +49,7 @@ def record_job(
         return
     overrides = list(hc.overrides.task)
     data: dict[str, Any] = {
-        "job": hc.job.get("num"),
+        "job": of_kind(hc.job, DictConfig).get("num"),
         "overrides": overrides,
         "status": status,
         "run_id": run_id,

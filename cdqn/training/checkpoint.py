@@ -77,9 +77,9 @@ def capture(
         signal_rows=signal_rows,
         agent=agent.state_dict(),
         optimizer=optimizer.state_dict() if optimizer is not None else None,
-        numpy_rng=rng.bit_generator.state,
+        numpy_rng=dict(rng.bit_generator.state),
         torch_rng=torch.get_rng_state(),
-        env_rng=env.unwrapped.np_random.bit_generator.state,
+        env_rng=dict(env.unwrapped.np_random.bit_generator.state),
     )
 
 

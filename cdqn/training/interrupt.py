@@ -12,11 +12,15 @@ from __future__ import annotations
 import logging
 import signal
 import threading
+from collections.abc import Callable
 from types import FrameType, TracebackType
+from typing import Any
 
 log = logging.getLogger("cdqn")
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
+Handler = Callable[[int, FrameType | None], Any] | int | signal.Handlers | None
+"""What ``signal.signal`` installs and returns."""
 
 
 class GracefulStop:
@@ -31,7 +35,7 @@ class GracefulStop:
         """The first signal received, if any."""
         self._count = 0
         self._abort_at = 2
-        self._previous: dict[int, object] = {}
+        self._previous: dict[int, Handler] = {}
 
     def __enter__(self) -> GracefulStop:
         if threading.current_thread() is threading.main_thread():

@@ -31,12 +31,12 @@ import logging
 import tempfile
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Protocol
 
 from mlflow.entities import Run
 from mlflow.tracking import MlflowClient
-from omegaconf import OmegaConf
 
-from cdqn.config import Config
+from cdqn.config import Config, to_plain
 from cdqn.control.box import Box
 from cdqn.control.setup import ControllerSetup
 from cdqn.network import QNetwork, save_network
@@ -58,6 +58,15 @@ from cdqn.training.tracking import (
 log = logging.getLogger("cdqn")
 
 
+class EpisodeCheckpoint(Protocol):
+    """A checkpoint (:class:`~cdqn.training.checkpoint.Checkpoint` or
+    :class:`~cdqn.training.population_checkpoint.MemberCheckpoint`): the state after its
+    ``episode`` episodes."""
+
+    @property
+    def episode(self) -> int: ...
+
+
 class RunLifecycle:
     """The MLflow runs of the members of one configuration ``conf`` in the store at ``uri``
     (module docstring); ``kind``: the checkpoint dataclass they store
@@ -73,8 +82,7 @@ class RunLifecycle:
         """Open member ``m``'s run: params, tags (and ``tags``) and design artifacts of a
         single run of its seed, and its checkpoint store."""
         conf = self.conf
-        container = OmegaConf.to_container(m.cfg, resolve=True)
-        assert isinstance(container, dict)
+        container = to_plain(m.cfg)
         run_tags = {
             Tag.ENV: conf.env.name,
             Tag.ENV_ID: conf.env.id,
@@ -152,19 +160,19 @@ class RunLifecycle:
         if stats.episode not in m.logged:
             m.recorder.log_episode(stats)
 
-    def checkpoint(self, m: Member, ckpt: object, announce: bool = True) -> None:
+    def checkpoint(self, m: Member, ckpt: EpisodeCheckpoint, announce: bool = True) -> None:
         """Member ``m``'s metrics so far and checkpoint ``ckpt`` into its run (``announce``:
         log it; a population logs one line for all its members)."""
         assert m.recorder is not None and m.store is not None
         m.recorder.flush()
         m.store.save(ckpt, m.signals, announce=announce)
-        m.checkpointed = ckpt.episode  # type: ignore[attr-defined]
+        m.checkpointed = ckpt.episode
 
-    def keep_locally(self, m: Member, ckpt: object) -> Path:
+    def keep_locally(self, m: Member, ckpt: EpisodeCheckpoint) -> Path:
         """Checkpoint ``ckpt`` and the metrics of its episodes not yet written, into
         member ``m``'s local file (the store is away); where it is."""
         assert m.recorder is not None
-        episode = ckpt.episode  # type: ignore[attr-defined]
+        episode = ckpt.episode
         pending = [p for p in m.recorder.pending if p[3] < episode]
         path = save_local(self.conf.tracking.local_checkpoints, m.recorder.run_id, ckpt,
                           m.signals, pending)  # fmt: skip

@@ -17,7 +17,7 @@ from numba import njit
 from tqdm.auto import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from cdqn.agents.base import Agent
+from cdqn.agents.base import Agent, ReplayAgent
 from cdqn.config import ReplayConfig
 from cdqn.control.box import Box
 from cdqn.records import Signal, column
@@ -252,8 +252,11 @@ class _Episodes:
 
         if not qualifies(replay, terminated, truncated, ret):
             return 0
+        agent = self.agent
+        if not isinstance(agent, ReplayAgent):
+            raise TypeError(f"{type(agent).__name__} has no episodic replay")
         replayed = 0
-        for rec in self.agent.replay(tail.transitions(), replay.repeats):
+        for rec in agent.replay(tail.transitions(), replay.repeats):
             check_replayed(rec, self.q_limit, ep, t)
             replayed += 1
         return replayed

@@ -46,13 +46,13 @@ import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
 
-from cdqn.config import Config, resolve_tracking_uri, validate
+from cdqn.config import Config, resolve_tracking_uri, to_schema, validate
 from cdqn.control.box import Box
 from cdqn.control.factory import make_controller
 from cdqn.records import Tag
@@ -60,6 +60,7 @@ from cdqn.training.build import build_population, member_config, member_seeds
 from cdqn.training.checkpoint import CheckpointStore, load_local, local_path
 from cdqn.training.interrupt import GracefulStop
 from cdqn.training.lifecycle import RunLifecycle
+from cdqn.training.loop import EpisodeStats
 from cdqn.training.member import Member
 from cdqn.training.population_checkpoint import (
     CLOSING_FILE,
@@ -72,7 +73,6 @@ from cdqn.training.population_checkpoint import (
     stored_config,
 )
 from cdqn.training.population_loop import Checkpoints, train_population
-from cdqn.training.population_step import ControlledPopulation
 from cdqn.training.result import OUTAGE, PopulationResult, RunResult
 from cdqn.training.sweep import (
     config_hash,
@@ -83,6 +83,9 @@ from cdqn.training.sweep import (
 )
 from cdqn.training.tracking import TrackingOutage, check_tracking
 from cdqn.vector_env import VectorEnv
+
+if TYPE_CHECKING:
+    from cdqn.training.population_loop import Population
 
 log = logging.getLogger("cdqn")
 
@@ -100,7 +103,7 @@ def start_population(
     true ``should_stop()`` ends the population as a signal does (members KILLED); both
     serve :mod:`cdqn.tune` (intermediate values, pruning).  ``cfg`` is adopted and
     validated (:func:`cdqn.training.run.run_population`)."""
-    conf: Config = OmegaConf.to_object(cfg)
+    conf = to_schema(cfg, Config)
     uri = resolve_tracking_uri(conf.tracking.uri)
     check_tracking(uri, conf.tracking.timeout)
     ensure_store(uri, conf.tracking.experiment)
@@ -165,7 +168,7 @@ def _skip_finished(
 
 def train_members(
     life: RunLifecycle,
-    agent: ControlledPopulation,
+    agent: Population,
     venv: VectorEnv,
     members: list[Member],
     results: dict,
@@ -236,7 +239,7 @@ class _PopulationRuns:
     def __init__(
         self,
         life: RunLifecycle,
-        agent: ControlledPopulation,
+        agent: Population,
         venv: VectorEnv,
         members: list[Member],
         results: dict,
@@ -298,9 +301,9 @@ class _PopulationRuns:
             for m, ckpt in items:
                 self.life.keep_locally(m, ckpt)
 
-    def on_episode(self, m: Member, stats: object) -> None:
+    def on_episode(self, m: Member, stats: EpisodeStats) -> None:
         try:
-            self.life.record(m, stats)  # type: ignore[arg-type]
+            self.life.record(m, stats)
         except TrackingOutage as err:  # the episode's metrics stay pending
             self.went_away(err)
         if self.observe is not None:
@@ -319,7 +322,7 @@ class _PopulationRuns:
         )
         return f"{during}; {where}, continue the population with resume={m.recorder.run_id}"
 
-    def on_member_end(self, m: Member, pop: ControlledPopulation, j: int) -> None:
+    def on_member_end(self, m: Member, pop: Population, j: int) -> None:
         assert m.recorder is not None
         net = pop.network(j)
         episodes = self.life.conf.train.episodes
@@ -424,7 +427,7 @@ def resume_population(uri: str, tracking: Any, runs: list, progress: bool) -> Po
         _forget_local(folder, [], results)
         return PopulationResult([results[s] for s in sorted(results)])
     cfgs = [stored_config(client, r.info.run_id, tracking) for r in runs]
-    confs: list[Config] = [OmegaConf.to_object(c) for c in cfgs]
+    confs = [to_schema(c, Config) for c in cfgs]
     conf = confs[0]
     validate(conf)
     setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
@@ -542,7 +545,7 @@ def close_from_local(uri: str, client: MlflowClient, run: Any, tracking: Any) ->
     if found is None:
         return None
     closing, pending = found
-    conf: Config = OmegaConf.to_object(stored_config(client, run_id, tracking))
+    conf = to_schema(stored_config(client, run_id, tracking), Config)
     m = Member(conf.seed, OmegaConf.create(), status=closing.status, reason=closing.reason)
     m.returns = list(closing.returns)
     m.episode = len(m.returns)

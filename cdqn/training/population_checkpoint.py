@@ -42,6 +42,7 @@ seeds) that loads every member's state continues as the interrupted one would ha
 from __future__ import annotations
 
 import tempfile
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -51,7 +52,7 @@ from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from cdqn.config import Config, ConfigError
+from cdqn.config import Config, ConfigError, merged
 from cdqn.records import Tag
 from cdqn.training.divergence import is_divergence
 from cdqn.training.signals import COLUMNS
@@ -169,8 +170,8 @@ def loadable(ckpt: MemberCheckpoint, venv: Any) -> bool:
     return ckpt.loop is None or bool(venv.checkpointable)
 
 
-def common_sequence(found: dict[str, list[tuple[MemberCheckpoint, int]]]) -> int | None:
-    """The newest checkpoint ``sequence`` every run in ``found`` (run id → readable
+def common_sequence(found: Mapping[int, list[tuple[MemberCheckpoint, int]]]) -> int | None:
+    """The newest checkpoint ``sequence`` every member in ``found`` (seed → readable
     checkpoints) holds, or None when they share none."""
     shared: set[int] | None = None
     for items in found.values():
@@ -190,7 +191,7 @@ def stored_config(client: MlflowClient, run_id: str, tracking: Any) -> DictConfi
                 "rebuilt (was it started by cdqn.train?)"
             ) from None
         try:
-            stored = OmegaConf.merge(OmegaConf.structured(Config), OmegaConf.load(path))
+            stored = merged(OmegaConf.structured(Config), OmegaConf.load(path))
         except OmegaConfBaseException as err:
             raise ConfigError(
                 f"resume={run_id}: its {CONFIG_ARTIFACT} does not fit this version of cdqn "

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -49,11 +49,17 @@ from cdqn.training.divergence import (
     failure_reason,
     replay_failed,
 )
-from cdqn.training.loop import episode_stats
+from cdqn.training.loop import EpisodeStats
+from cdqn.training.loop import episode_stats as episode_stats  # cdqn.profile times it here
 from cdqn.training.member import Member
 from cdqn.training.population_step import CHECK, DONE, ControlledPopulation
 from cdqn.training.signals import COLUMNS
 from cdqn.vector_env import VectorEnv
+
+if TYPE_CHECKING:
+    from cdqn.training.ddqn_population import DDQNPopulation
+
+    Population = ControlledPopulation | DDQNPopulation
 
 _RECORD = tuple(column(c) for c in StepRecord._fields)
 """Indices of a :class:`StepRecord`'s fields among the signal columns."""
@@ -168,15 +174,15 @@ class _Staging:
 
 
 def train_population(
-    agent: ControlledPopulation,
+    agent: Population,
     venv: VectorEnv,
     members: list[Member],
     *,
     episodes: int,
     discount: float,
     q_limit: float,
-    on_episode: Callable[[Member, object], None] | None = None,
-    on_member_end: Callable[[Member, ControlledPopulation, int], None] | None = None,
+    on_episode: Callable[[Member, EpisodeStats], None] | None = None,
+    on_member_end: Callable[[Member, Population, int], None] | None = None,
     progress: bool = False,
     should_stop: Callable[[], bool] | None = None,
     max_steps: int | None = None,
@@ -228,7 +234,7 @@ class _Ends:
     discount: float
     q_limit: float
     box: Box | None
-    on_episode: Callable[[Member, object], None] | None
+    on_episode: Callable[[Member, EpisodeStats], None] | None
 
 
 class _Batch:
@@ -237,7 +243,7 @@ class _Batch:
 
     def __init__(
         self,
-        agent: ControlledPopulation,
+        agent: Population,
         venv: VectorEnv,
         members: list[Member],
         checkpoints: Checkpoints | None,
@@ -303,12 +309,12 @@ class _Batch:
         leaving: list[int] = []
         if flagged:
             flags = agent.flags
-            for j in np.flatnonzero(flags == CHECK):  # the single run's exact test
+            for j in np.flatnonzero(flags == CHECK).tolist():  # the single run's exact test
                 if self._checked(j, rows[j], ends.q_limit):
                     flags[j] = DONE if out.terminated[j] or out.truncated[j] else 0
                 else:
                     leaving.append(j)
-            for j in np.flatnonzero(flags == DONE):
+            for j in np.flatnonzero(flags == DONE).tolist():
                 end = (bool(out.terminated[j]), bool(out.truncated[j]), float(self.ret[j]))
                 if self._episode_end(j, end, ends, bar):
                     leaving.append(j)
@@ -362,8 +368,11 @@ class _Batch:
         """Episodic replay of member ``j``'s episode if it qualifies; the updates made."""
         if self.tail is None or self.replay is None or not qualifies(self.replay, *end):
             return 0
+        agent = self.agent
+        if not isinstance(agent, ControlledPopulation):
+            raise TypeError(f"{type(agent).__name__} has no episodic replay")
         steps = self._replay_steps(j)
-        replayed = self.agent.replay(j, self.tail.transitions(j, steps), self.replay.repeats,
+        replayed = agent.replay(j, self.tail.transitions(j, steps), self.replay.repeats,
                                      q_limit)  # fmt: skip
         if replayed < 0:
             raise replay_failed(-replayed - 1, self.members[j].episode, int(self.t[j] - 1))
@@ -384,7 +393,7 @@ class _Batch:
     def leave(
         self,
         leaving: list[int],
-        on_member_end: Callable[[Member, ControlledPopulation, int], None] | None,
+        on_member_end: Callable[[Member, Population, int], None] | None,
     ) -> bool:
         """Drop the rows ``leaving`` from the batch (``on_member_end`` first); False when no
         member is left."""

@@ -18,9 +18,9 @@ from typing import TYPE_CHECKING
 
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
-from omegaconf import DictConfig, OmegaConf, open_dict, read_write
+from omegaconf import DictConfig, open_dict, read_write
 
-from cdqn.config import ConfigError, resolve_tracking_uri
+from cdqn.config import Config, ConfigError, resolve_tracking_uri, to_schema
 from cdqn.envs import Adopted, adopt, make_env
 from cdqn.records import Tag
 from cdqn.training.build import member_config, member_seeds
@@ -121,7 +121,7 @@ def _population(
 def _member(cfg: DictConfig, seed: int) -> Adopted:
     """The adopted single run that the member of seed ``seed`` stands for."""
     member = member_config(cfg, seed)
-    return Adopted(member, OmegaConf.to_object(member), None)
+    return Adopted(member, to_schema(member, Config), None)
 
 
 def resume(cfg: DictConfig, progress: bool = True) -> RunResult:

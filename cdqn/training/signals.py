@@ -15,11 +15,20 @@ import pandas as pd
 
 from cdqn.agents.base import StepRecord
 from cdqn.control.box import Box
-from cdqn.records import BOX_SERIES, SERIES, SERIES_PREFIX, SPECTRA, SPECTRUM_PREFIX, column
+from cdqn.records import (
+    BOX_SERIES,
+    SERIES,
+    SERIES_PREFIX,
+    SPECTRA,
+    SPECTRUM_PREFIX,
+    STEP_COLUMNS,
+    column,
+)
 from cdqn.records import FFT_COLUMNS as FFT_COLUMNS
-from cdqn.records import STEP_COLUMNS as COLUMNS
 from cdqn.records import Signal as S
 
+COLUMNS = STEP_COLUMNS
+"""The step table's columns (:data:`cdqn.records.STEP_COLUMNS`)."""
 _RECORD_COLUMNS = attrgetter(*COLUMNS[3:])
 """The signal columns after ``episode, step, reward`` from a :class:`StepRecord`, by name."""
 ROUND_OFF = 1e-12

@@ -22,12 +22,19 @@ from dataclasses import dataclass
 import gymnasium as gym
 from mlflow.entities import Run
 from mlflow.tracking import MlflowClient
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from cdqn.config import Config, validate
+from cdqn.config import Config, to_schema, validate
 from cdqn.envs import make_env
 from cdqn.training.build import Job, build
-from cdqn.training.checkpoint import CheckpointStore, capture, load_local, local_path, restore
+from cdqn.training.checkpoint import (
+    Checkpoint,
+    CheckpointStore,
+    capture,
+    load_local,
+    local_path,
+    restore,
+)
 from cdqn.training.divergence import DivergenceError, failure_reason
 from cdqn.training.interrupt import GracefulStop
 from cdqn.training.lifecycle import RunLifecycle
@@ -69,7 +76,7 @@ def resume_run(
 
     run_id = info.info.run_id
     stored = stored_config(client, run_id, cfg.tracking)
-    conf: Config = OmegaConf.to_object(stored)
+    conf = to_schema(stored, Config)
     validate(conf)
     env = make_env(conf.env)
     try:
@@ -197,7 +204,7 @@ class _SingleRun:
         if every and st.episode % every == 0 and st.episode < episodes:
             self.checkpoint()
 
-    def _capture(self) -> object:
+    def _capture(self) -> Checkpoint:
         rows = self.m.signals.n if self.job.conf.train.signals else 0
         return capture(self.job.agent, self.job.env, self.state, self.job.rng, rows)
 

@@ -42,8 +42,10 @@ from cdqn.config import (
 
 try:
     import fcntl
+
+    LOCKS = True
 except ImportError:  # Windows: no advisory locks, PrepareStore still creates the store once
-    fcntl = None
+    LOCKS = False
 
 from hydra.experimental.callback import Callback
 from mlflow.entities import Run
@@ -85,7 +87,9 @@ def _drop_unset_own_targets(tree: dict[str, Any]) -> None:
     (``weights.controller_target``): the configuration is then the one of runs recorded
     before the setting existed, and a restarted sweep still finds them."""
     weights = tree.get("weights")
-    own = weights.get("controller_target") if isinstance(weights, dict) else None
+    if not isinstance(weights, dict):
+        return
+    own = weights.get("controller_target")
     if not isinstance(own, dict):
         return
     for name in list(own):
@@ -199,7 +203,7 @@ def ensure_store(uri: str, experiment: str, attempts: int = 5) -> None:
 @contextlib.contextmanager
 def _store_lock(uri: str) -> Iterator[None]:
     """Exclusive lock on ``<database>.lock`` for ``sqlite:///`` URIs (POSIX); else nothing."""
-    if not uri.startswith("sqlite:///") or fcntl is None:
+    if not uri.startswith("sqlite:///") or not LOCKS:
         yield
         return
     path = Path(uri[len("sqlite:///") :] + ".lock")

@@ -9,6 +9,7 @@ one metric call per environment step.
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import logging
 import math
@@ -399,7 +400,8 @@ class Recorder:
         """Write the pending metrics (a batch written is dropped from :attr:`pending`)."""
         while self._pending:
             batch = self._pending[:1000]
-            self._retry(lambda b=batch: self.client.log_batch(self.run_id, metrics=b), "metrics")
+            self._retry(functools.partial(self.client.log_batch, self.run_id, metrics=batch),
+                        "metrics")  # fmt: skip
             del self._pending[: len(batch)]
         self._last_flush = time.monotonic()
 

@@ -110,10 +110,10 @@ def _train_part(config: Path, result: Path) -> None:
     members' results to ``result`` (JSON)."""
     import dataclasses
 
-    from cdqn.config import Config
+    from cdqn.config import Config, merged
     from cdqn.training.run import run_population
 
-    cfg = OmegaConf.merge(OmegaConf.structured(Config), OmegaConf.load(config))
+    cfg = merged(OmegaConf.structured(Config), OmegaConf.load(config))
     members = run_population(cfg, progress=False).members
     result.write_text(json.dumps([dataclasses.asdict(m) for m in members]))
 

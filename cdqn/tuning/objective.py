@@ -50,7 +50,8 @@ class Progress:
 
     def value_at(self, n: int) -> float | None:
         """J over the first ``n`` episodes once every member has them (or has failed)."""
-        curves = [padded(r, n, s in self.failed) for s, r in self.returns.items()]
-        if any(c is None for c in curves):
+        found = [padded(r, n, s in self.failed) for s, r in self.returns.items()]
+        curves = [c for c in found if c is not None]
+        if len(curves) < len(found):
             return None
         return area(curves)

@@ -46,7 +46,11 @@ def plot_study(tracker: Any, parent: str, study: Any) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
     from optuna.visualization import matplotlib as ovm
+
+    from cdqn.config import of_kind
 
     with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings():
         warnings.simplefilter("ignore")  # optuna marks these plots experimental
@@ -57,7 +61,8 @@ def plot_study(tracker: Any, parent: str, study: Any) -> None:
             except (ValueError, RuntimeError) as err:  # too few complete trials
                 log.info("no %s plot: %s", name, err)
                 continue
-            fig = ax.figure if hasattr(ax, "figure") else ax.flat[0].figure
+            first = ax if isinstance(ax, Axes) else ax.flat[0]  # one Axes or an array of them
+            fig = of_kind(first.figure, Figure)
             fig.set_size_inches(8, 5)
             fig.tight_layout()
             fig.savefig(Path(tmp) / f"{name}.png", dpi=120)

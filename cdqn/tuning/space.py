@@ -28,6 +28,8 @@ def sample(trial: Any, space: dict[str, ParamSpec]) -> dict[str, Any]:
             continue
         if p.choices is not None:
             out[name] = trial.suggest_categorical(name, list(p.choices))
+        elif p.low is None or p.high is None:  # refused by the settings' check
+            raise ValueError(f"{name}: low={p.low}, high={p.high}: need numbers")
         elif p.integer:
             out[name] = trial.suggest_int(name, int(p.low), int(p.high), log=p.log)
         else:

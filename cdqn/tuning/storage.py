@@ -9,8 +9,10 @@ from typing import Any
 
 try:
     import fcntl
+
+    LOCKS = True
 except ImportError:  # Windows: one worker per study
-    fcntl = None
+    LOCKS = False
 
 
 HEARTBEAT = 60
@@ -39,13 +41,13 @@ class StudyLock:
         if self._handle is not None:
             raise RuntimeError(f"{self.path}: the lock is already held by this process")
         self._handle = self.path.open("a")
-        if fcntl is not None:
+        if LOCKS:
             fcntl.flock(self._handle, fcntl.LOCK_EX)
 
     def release(self) -> None:
         if self._handle is None:
             return
-        if fcntl is not None:
+        if LOCKS:
             fcntl.flock(self._handle, fcntl.LOCK_UN)
         self._handle.close()
         self._handle = None

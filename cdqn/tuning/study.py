@@ -26,7 +26,11 @@ from cdqn.config import (
     TARGET_CONTROLLERS,
     Config,
     ConfigError,
+    merged,
+    of_kind,
     resolve_tracking_uri,
+    to_plain,
+    to_schema,
 )
 from cdqn.records import Tag
 from cdqn.training.interrupt import GracefulStop
@@ -53,7 +57,7 @@ class Study:
         if adopted.change is not None:
             log.info("%s", adopted.change)
         cfg = adopted.cfg
-        self.conf: TuneConfig = adopted.conf
+        self.conf = of_kind(adopted.conf, TuneConfig)
         validate_tune(self.conf)
         self.cfg = cfg
         t = self.conf.tune
@@ -62,9 +66,9 @@ class Study:
         self.episodes = episode_budget(t, self.conf.env.max_episode_steps)
         self.space = self._offered(t.space)
         self.uri = resolve_tracking_uri(self.conf.tracking.uri)
-        container = OmegaConf.to_container(cfg, resolve=True)
+        container = to_plain(cfg)
         container.pop("tune")
-        base = OmegaConf.merge(OmegaConf.structured(Config), container)
+        base = merged(OmegaConf.structured(Config), container)
         with read_write(base):
             base.train.episodes = self.episodes
             base.train.progress = False
@@ -81,6 +85,7 @@ class Study:
     def _offered(self, space: dict[str, Any]) -> dict[str, Any]:
         """The search space as this environment's observation allows it."""
         import numpy as np
+        from gymnasium.spaces import Box
 
         from cdqn.envs import RadialFeatures, make_env
 
@@ -88,7 +93,7 @@ class Study:
         env_cfg = copy.deepcopy(self.conf.env)
         env_cfg.rbf_centres = None
         env = make_env(env_cfg)
-        box = env.observation_space
+        box = of_kind(env.observation_space, Box)
         bounded = bool(np.all(np.isfinite(box.low)) and np.all(np.isfinite(box.high)))
         env.close()
         return fit_to_observation(space, bounded, int(box.shape[0]), most)
@@ -123,7 +128,7 @@ class Study:
         from cdqn.network import NetworkSpec, QNetwork
         from cdqn.ntk_bounds import measured_box
 
-        conf: Config = OmegaConf.to_object(cfg)
+        conf = to_schema(cfg, Config)
         conf.seed = self.conf.tune.seed
         env = make_env(conf.env)
         n_obs, n_actions = env_sizes(env)
@@ -143,7 +148,7 @@ class Study:
 
         if not self.designed:
             return None
-        conf: Config = OmegaConf.to_object(cfg)
+        conf = to_schema(cfg, Config)
         validate(conf)
         return make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
 

@@ -8,8 +8,9 @@ import math
 import time
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
+from cdqn.config import to_plain
 from cdqn.records import Artifact, Metric, Tag
 
 log = logging.getLogger("cdqn.tune")
@@ -59,7 +60,7 @@ class Tracker:
         run = self.client.create_run(self.experiment_id, run_name=f"tune-{conf.tune.study}",
                                      tags=tags)  # fmt: skip
         run_id = run.info.run_id
-        container = OmegaConf.to_container(cfg, resolve=True)
+        container = to_plain(cfg)
         self.log_params(run_id, flatten(container))
         self.client.log_dict(run_id, container, Artifact.CONFIG)
         study.set_user_attr("mlflow_parent", run_id)

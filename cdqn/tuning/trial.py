@@ -200,8 +200,9 @@ class Trial:
             raise optuna.TrialPruned(reason)
         self.tracker.nest(self.child, ids)
         n = self.s.episodes
-        curves = [padded(r, n, s in prog.failed) for s, r in prog.returns.items()]
-        if any(c is None for c in curves):
+        found = [padded(r, n, s in prog.failed) for s, r in prog.returns.items()]
+        curves = [c for c in found if c is not None]
+        if len(curves) < len(found):
             self._end("FAILED", "failed", "a member recorded no episode", status="failed")
             raise RuntimeError("a member recorded no episode")
         value = area(curves)
