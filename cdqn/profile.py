@@ -14,7 +14,7 @@ the members' controller arrays and subtracted from the update, which leaves the 
 share (forward pass at s', Θ1/Θ2, SGD step) with the step's signal row.  Times are CPU
 seconds of this process; the first ``--warmup`` population steps are not counted.
 
-Double DQN (:mod:`cdqn.training.ddqn_population`) has no controller; its update is timed as
+Double DQN (:mod:`cdqn.agents.ddqn_population`) has no controller; its update is timed as
 two parts, the per-step kernel (pass at s', Θ1/Θ2, signal row, replay buffer) and the
 minibatch steps, the rest of it (minibatch index draws, target copies) going to the loop's
 share.  Its warm-up should pass ``learning_starts`` (``--warmup 1200``).
@@ -41,22 +41,23 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 from numba import njit  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
-from cdqn.config import Config, register_configs, to_schema  # noqa: E402
-from cdqn.control.factory import make_controller  # noqa: E402
-from cdqn.control.kernels import scheduled_lqr_step, state_space_step, static_gain_u  # noqa: E402
-from cdqn.envs import adopt, env_presets  # noqa: E402
-from cdqn.training import ddqn_population, population_loop  # noqa: E402
-from cdqn.training.build import build_population, member_config  # noqa: E402
-from cdqn.training.ddqn_population import DDQNPopulation  # noqa: E402
-from cdqn.training.member import Member  # noqa: E402
-from cdqn.training.population_loop import train_population  # noqa: E402
-from cdqn.training.population_step import (  # noqa: E402
+from cdqn.agents import ddqn_population  # noqa: E402
+from cdqn.agents.controlled_population import (  # noqa: E402
     SCHEDULED_LQR,
     STATE_SPACE,
     STATIC_GAIN,
     ControlledPopulation,
     ControllerArrays,
 )
+from cdqn.agents.ddqn_population import DDQNPopulation  # noqa: E402
+from cdqn.config import Config, register_configs, to_schema  # noqa: E402
+from cdqn.control.factory import make_controller  # noqa: E402
+from cdqn.control.kernels import scheduled_lqr_step, state_space_step, static_gain_u  # noqa: E402
+from cdqn.envs import adopt, env_presets  # noqa: E402
+from cdqn.training import population_loop  # noqa: E402
+from cdqn.training.build import build_population, member_config  # noqa: E402
+from cdqn.training.member import Member  # noqa: E402
+from cdqn.training.population_loop import train_population  # noqa: E402
 from cdqn.training.signals import SignalBuffer  # noqa: E402
 
 PARTS = ("environment", "exploration", "act (forward at s after a reset, argmax)", "network",

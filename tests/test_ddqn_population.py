@@ -10,11 +10,11 @@ import torch
 from mlflow.tracking import MlflowClient
 from omegaconf import OmegaConf
 
+from cdqn.agents.ddqn_population import DDQNPopulation
 from cdqn.control.factory import make_controller
 from cdqn.envs import make_env
 from cdqn.network import FastTwoLayer, NetworkSpec, QNetwork, double_dqn_step
 from cdqn.training.build import build, build_population
-from cdqn.training.ddqn_population import DDQNPopulation
 from cdqn.training.loop import TrainState, train
 from cdqn.training.member import Member
 from cdqn.training.population_loop import train_population

@@ -11,6 +11,7 @@ from mlflow.tracking import MlflowClient
 from omegaconf import OmegaConf
 
 from cdqn.agents.base import EpsilonGreedy
+from cdqn.agents.controlled_population import ExplorationPlan
 from cdqn.config import EPS_SCHEDULES, EnvConfig, TrainConfig
 from cdqn.control.factory import make_controller
 from cdqn.envs import make_env
@@ -18,7 +19,6 @@ from cdqn.training.build import build, build_population, member_seeds
 from cdqn.training.loop import DivergenceError, TrainState, train
 from cdqn.training.member import Member
 from cdqn.training.population_loop import train_population
-from cdqn.training.population_step import ExplorationPlan
 from cdqn.training.run import run, run_population
 from cdqn.training.signals import SignalBuffer
 from cdqn.vector_env import (

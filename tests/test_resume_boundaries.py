@@ -14,12 +14,12 @@ import pytest
 import torch
 from mlflow.tracking import MlflowClient
 
+from cdqn.agents.controlled_population import ExplorationPlan
 from cdqn.config import EPS_SCHEDULES, EnvConfig, TrainConfig
 from cdqn.envs import make_env
 from cdqn.network import load_network
 from cdqn.training.checkpoint import CheckpointStore
 from cdqn.training.population_checkpoint import MemberCheckpoint
-from cdqn.training.population_step import ExplorationPlan
 from cdqn.training.run import run
 from cdqn.vector_env import GymLoop, make_vector_env
 from tests.conftest import compose_config

@@ -1,7 +1,7 @@
 """Per-step controller arithmetic, compiled (numba), shared by single runs and populations.
 
 The runtime controllers of :mod:`cdqn.control.runtime` and the batched population step
-(:mod:`cdqn.training.population_step`) call these same functions, so a member of a population
+(:mod:`cdqn.agents.controlled_population`) call these same functions, so a member of a population
 computes the control reward of the single run of its seed bit for bit.  All of them use
 strict IEEE arithmetic (no fast-math), in the order the formulas are written.
 

@@ -16,8 +16,6 @@ layer module                                 what it holds
 1     :mod:`~cdqn.training.divergence`       the divergence check of every run
 2     :mod:`~cdqn.training.loop`             the training loop of a single run
 2     :mod:`~cdqn.training.member`           a run in training: seed, run, signals, state
-2     :mod:`~cdqn.training.population_step`  the batched controlled agent (compiled kernels)
-3     :mod:`~cdqn.training.ddqn_population`  the batched Double DQN agent
 3     :mod:`~cdqn.training.population_loop`  the training loop of a population
 4     :mod:`~cdqn.training.build`            env, network, controller and agent of a run
 5     :mod:`~cdqn.training.tracking`         the MLflow recorder, retries while it is away
@@ -34,8 +32,8 @@ layer module                                 what it holds
 
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("signals", "interrupt", "result", "batching", "divergence"),
-    ("loop", "member", "population_step"),
-    ("ddqn_population", "population_loop"),
+    ("loop", "member"),
+    ("population_loop",),
     ("build",),
     ("tracking", "sweep", "callbacks"),
     ("checkpoint", "population_checkpoint"),

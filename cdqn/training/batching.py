@@ -42,7 +42,7 @@ class JobShape(NamedTuple):
 def batchable(conf: Config) -> bool:
     """Whether the members train as one batch: :class:`ControlledPopulation` (its
     controllers are the runtime controllers
-    :class:`cdqn.training.population_step.ControllerArrays` knows) or :class:`DDQNPopulation`,
+    :class:`cdqn.agents.controlled_population.ControllerArrays` knows) or :class:`DDQNPopulation`,
     both on the fast path, with one design for all members (a measured NTK box builds each
     seed's design on its own network, :mod:`cdqn.ntk_bounds`)."""
     ctrl = conf.controller

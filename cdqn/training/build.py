@@ -21,8 +21,8 @@ from cdqn.envs import env_sizes, make_env
 from cdqn.network import NetworkSpec, QNetwork
 
 if TYPE_CHECKING:
-    from cdqn.training.ddqn_population import DDQNPopulation
-    from cdqn.training.population_step import ControlledPopulation
+    from cdqn.agents.controlled_population import ControlledPopulation
+    from cdqn.agents.ddqn_population import DDQNPopulation
     from cdqn.vector_env import VectorEnv
 
 
@@ -77,8 +77,8 @@ def build_population(
     """Agent and environments of a population, with the calls of :func:`build` per member
     (network initialised under ``torch.manual_seed(seed)``, exploration from
     ``np.random.default_rng(seed)``)."""
-    from cdqn.training.ddqn_population import DDQNPopulation
-    from cdqn.training.population_step import ControlledPopulation
+    from cdqn.agents.controlled_population import ControlledPopulation
+    from cdqn.agents.ddqn_population import DDQNPopulation
     from cdqn.vector_env import make_vector_env
 
     envs = [make_env(conf.env) for _ in seeds]

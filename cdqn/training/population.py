@@ -3,7 +3,7 @@
 ``python -m cdqn.train train.population=10 seed=0`` trains seeds 0, 1, …, 9 together.  The
 members' networks are stacked and each step of all of them (forward passes, NTK,
 controllers, SGD steps, signal rows) is two compiled calls built from the row functions a
-single run uses (:mod:`cdqn.training.population_step`); their environments step as one
+single run uses (:mod:`cdqn.agents.controlled_population`); their environments step as one
 (:mod:`cdqn.vector_env`); :func:`cdqn.training.population_loop.train_population` is the
 loop.  So the per-step Python of the trainer, the environment and the bookkeeping is paid
 once for ``K`` members.  This module takes the members' runs through their lifecycle
@@ -18,7 +18,7 @@ numbers are bit-identical (``tests/test_population.py``).
 
 :class:`ControlledPopulation` is the batched :class:`cdqn.agents.ControlledAgent` (fast
 path) for ``none``, ``h2``, ``hinf`` and ``hinf_f``,
-:class:`cdqn.training.ddqn_population.DDQNPopulation` the batched
+:class:`cdqn.agents.ddqn_population.DDQNPopulation` the batched
 :class:`cdqn.agents.DDQNAgent`.  Configurations that cannot be batched
 (``train.fast_path=false``, a measured NTK box) train their members one after another as
 single runs (:func:`cdqn.training.run.run_population`).

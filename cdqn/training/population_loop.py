@@ -1,8 +1,8 @@
 """The training loop of a population: ``K`` members stepped as one batch.
 
 :func:`train_population` is :func:`cdqn.training.loop.train` for all members at once: one
-call of the batched agent (:mod:`cdqn.training.population_step`,
-:mod:`cdqn.training.ddqn_population`) and of the vectorised environment
+call of the batched agent (:mod:`cdqn.agents.controlled_population`,
+:mod:`cdqn.agents.ddqn_population`) and of the vectorised environment
 (:mod:`cdqn.vector_env`) per population step, each member's signal rows and divergence test
 as a single run has them, members leaving the batch when they finish or diverge.
 
@@ -25,7 +25,7 @@ of two schedules, by what the environments allow (:mod:`cdqn.vector_env`):
   with a reset from its restored ``np_random``; as its numbers depend on nothing but its
   own state, members restored at different episodes (and population steps) continue
   exactly as they would have (the shared exploration plan is realigned,
-  :meth:`cdqn.training.population_step.ExplorationPlan.load_state_dict`).
+  :meth:`cdqn.agents.controlled_population.ExplorationPlan.load_state_dict`).
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from cdqn.agents.base import StepRecord
+from cdqn.agents.controlled_population import CHECK, DONE, ControlledPopulation
 from cdqn.agents.episodic_replay import PopulationTail, Transitions, qualifies
 from cdqn.config import ReplayConfig
 from cdqn.control.box import Box
@@ -52,12 +53,11 @@ from cdqn.training.divergence import (
 from cdqn.training.loop import EpisodeStats
 from cdqn.training.loop import episode_stats as episode_stats  # cdqn.profile times it here
 from cdqn.training.member import Member
-from cdqn.training.population_step import CHECK, DONE, ControlledPopulation
 from cdqn.training.signals import COLUMNS
 from cdqn.vector_env import VectorEnv
 
 if TYPE_CHECKING:
-    from cdqn.training.ddqn_population import DDQNPopulation
+    from cdqn.agents.ddqn_population import DDQNPopulation
 
     Population = ControlledPopulation | DDQNPopulation
 

@@ -1,7 +1,7 @@
 """The Double DQN agent of a population: ``K`` members' steps as two compiled calls.
 
 :class:`DDQNPopulation` is :class:`cdqn.agents.DDQNAgent` (fast path) for ``K`` members at
-once, with the interface of :class:`cdqn.training.population_step.ControlledPopulation` that
+once, with the interface of :class:`cdqn.agents.controlled_population.ControlledPopulation` that
 :func:`cdqn.training.population.train_population` drives.  Per step and member it runs exactly the
 single agent's algorithm:
 
@@ -38,6 +38,7 @@ import numpy as np
 from numba import njit
 
 from cdqn.agents.base import EpsilonGreedy
+from cdqn.agents.controlled_population import CHECK, DONE
 from cdqn.agents.ddqn import step_settings
 from cdqn.agents.replay import StackedReplay
 from cdqn.config import ControllerConfig, TrainConfig
@@ -50,7 +51,6 @@ from cdqn.network import (
     step_settings_array,
     td_row,
 )
-from cdqn.training.population_step import CHECK, DONE
 from cdqn.vector_env import VectorStep
 
 
@@ -143,8 +143,8 @@ class DDQNPopulation:
     ) -> int:
         """One Double DQN step of every member on the environments' ``step``: signal rows
         into ``rows``, ``ret`` and ``t`` advanced, :attr:`flags` and :attr:`loss_seen` as in
-        :meth:`cdqn.training.population_step.ControlledPopulation.update`.  Returns the number of
-        flagged members."""
+        :meth:`cdqn.agents.controlled_population.ControlledPopulation.update`.  Returns the
+        number of flagged members."""
         n, r = self.net, self.replay
         _record_kernel(
             n.w1t, n.b1, n.w2, n.b2, self.x, self.p, self.q, *self.scratch, actions,
