@@ -47,14 +47,16 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import torch
 from numba import njit
 from torch import nn
 
-from cdqn.ddqn_kernels import JitOptions
+if TYPE_CHECKING:
+    from cdqn.ddqn_kernels import JitOptions
+
 
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
 

@@ -13,7 +13,6 @@ import numpy as np
 import scipy.linalg
 
 from cdqn.control.kernels import scheduled_lqr_step, state_space_step, static_gain_u
-from cdqn.control.plant import gain_triple
 
 
 class RuntimeController(Protocol):
@@ -91,7 +90,8 @@ class ScheduledLQR:
     @property
     def gains(self) -> tuple[float, float, float]:
         """The gains (k1, k2, k3) of the last step that had an LQR solution."""
-        return gain_triple(self._gains.tolist())
+        k1, k2, k3 = (float(g) for g in self._gains)
+        return k1, k2, k3
 
     def reset(self) -> None:
         pass
