@@ -12,6 +12,8 @@ from cdqn.config import TrainConfig
 
 if TYPE_CHECKING:
     from cdqn.agents.episodic_replay import Transitions
+    from cdqn.network import QNetwork
+    from cdqn.vector_env import VectorStep
 
 
 class StepRecord(NamedTuple):
@@ -49,6 +51,56 @@ class Agent(Protocol):
     def state_dict(self) -> dict[str, Any]: ...
 
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
+class MemberControllers(Protocol):
+    """The controllers of a population's members (none for Double DQN)."""
+
+    def state(self, i: int) -> np.ndarray | None:
+        """Member ``i``'s controller state, checked for divergence; None without one."""
+        ...
+
+
+class PopulationAgent(Protocol):
+    """K members of one agent stepped together (``train.population``), driven by
+    :func:`cdqn.training.population_loop.train_population`; member ``i`` learns exactly what
+    the single :class:`Agent` of its seed learns.  Implemented by
+    :class:`cdqn.agents.controlled_population.ControlledPopulation` and
+    :class:`cdqn.agents.ddqn_population.DDQNPopulation`."""
+
+    flags: np.ndarray
+    """Per member, after :meth:`update`: why it needs the loop's attention (0: it does not)."""
+    loss_seen: np.ndarray
+    """Per member: a finite loss was recorded in the current episode."""
+
+    @property
+    def controller(self) -> MemberControllers: ...
+
+    @property
+    def epsilon(self) -> np.ndarray: ...
+
+    def start_episode(self, i: int) -> None: ...
+
+    def act(self, obs: np.ndarray) -> np.ndarray: ...
+
+    def update(
+        self,
+        actions: np.ndarray,
+        step: VectorStep,
+        ep: np.ndarray,
+        t: np.ndarray,
+        ret: np.ndarray,
+        rows: np.ndarray,
+        q_limit: float,
+    ) -> int: ...
+
+    def select(self, keep: np.ndarray) -> None: ...
+
+    def network(self, i: int) -> QNetwork: ...
+
+    def state_dict(self, i: int) -> dict[str, Any]: ...
+
+    def load_state_dict(self, i: int, state: dict[str, Any]) -> None: ...
 
 
 @runtime_checkable

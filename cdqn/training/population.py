@@ -85,7 +85,7 @@ from cdqn.training.tracking import TrackingOutage, check_tracking
 from cdqn.vector_env import VectorEnv
 
 if TYPE_CHECKING:
-    from cdqn.training.population_loop import Population
+    from cdqn.agents.base import PopulationAgent as Population
 
 log = logging.getLogger("cdqn")
 

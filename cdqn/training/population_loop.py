@@ -57,9 +57,7 @@ from cdqn.training.signals import COLUMNS
 from cdqn.vector_env import VectorEnv
 
 if TYPE_CHECKING:
-    from cdqn.agents.ddqn_population import DDQNPopulation
-
-    Population = ControlledPopulation | DDQNPopulation
+    from cdqn.agents.base import PopulationAgent as Population
 
 _RECORD = tuple(column(c) for c in StepRecord._fields)
 """Indices of a :class:`StepRecord`'s fields among the signal columns."""
