@@ -320,10 +320,12 @@ def test_a_sweep_config_finds_the_users_presets(tmp_path: Path) -> None:
     (beside conf/), and names a missing one in one line."""
     from cdqn.cli import check_overrides
 
-    src = (CONF_DIR / "weights" / "acrobot.yaml").read_text()
+    env = "cartpole_pole"  # an environment preset whose agents conf/weights has no tuned presets of
+    assert not list((CONF_DIR / "weights").glob(f"tuned_{env}-*.yaml"))
+    src = (CONF_DIR / "weights" / f"{env}.yaml").read_text()
     (tmp_path / "weights").mkdir()
-    (tmp_path / "weights" / "tuned_acrobot-h2.yaml").write_text(src)
-    common = ["env=acrobot", f"hydra.searchpath=[file://{tmp_path}]", "train.episodes=2"]
+    (tmp_path / "weights" / f"tuned_{env}-h2.yaml").write_text(src)
+    common = [f"env={env}", f"hydra.searchpath=[file://{tmp_path}]", "train.episodes=2"]
     assert check_overrides([*common, "controller=h2"], True, "like", config_dir=SWEEPS) == []
     (msg,) = check_overrides([*common, "controller=h2,hinf"], True, "like", config_dir=SWEEPS)
-    assert "tuned_acrobot-hinf" in msg
+    assert f"tuned_{env}-hinf" in msg
