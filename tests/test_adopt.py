@@ -100,6 +100,25 @@ def test_constructor_arguments_make_the_label_distinct_and_deterministic() -> No
     assert len(names) == 3
 
 
+@pytest.mark.parametrize("env", ["cartpole", "cartpole_pole"])
+def test_a_presets_own_id_with_constructor_arguments_is_labelled_by_them(env: str) -> None:
+    """``env=cartpole +env.kwargs.sutton_barto_reward=true`` is not ``cartpole``: its label
+    carries the arguments as an adopted id's does; the preset's cap, threshold, weights and
+    box stay."""
+    given = [f"env={env}", "+env.kwargs.sutton_barto_reward=true"]
+    with command_line(given):
+        adopted = adopt(compose_config(given))
+    label = f"{env}.sutton_barto_reward-true"
+    preset = env_presets()[env]
+    conf = adopted.conf
+    assert conf.env.name == label and adopted.box_source == "config"
+    assert (conf.env.max_episode_steps, conf.env.solve_threshold) == (200, 195.0)
+    assert (conf.env.obs_indices, conf.weights.name) == (preset.obs_indices, env)
+    assert adopted.change == f"env={env} with constructor arguments env.kwargs: named {label}"
+    assert adopt(adopted.cfg).change is None
+    assert check_overrides(given) == []
+
+
 @pytest.mark.parametrize("env", sorted(env_presets()))
 def test_presets_are_left_as_they_are_and_hash_as_before(env: str) -> None:
     cfg = compose_config([f"env={env}"])
@@ -480,6 +499,30 @@ def test_multirun_and_population_runs_are_the_environments(store: Store) -> None
         if r.data.tags["controller"] == "none":
             _assert_adopted(r, "none")
             assert r.data.params["env.kwargs"] == "{}"
+
+
+@pytest.mark.slow
+def test_a_presets_own_id_with_constructor_arguments_runs_under_their_label(
+    tmp_path: Path,
+) -> None:
+    """``python -m cdqn.train -m env=cartpole +env.kwargs.sutton_barto_reward=true`` with a
+    single run and a population of two: every run is named and tagged by the label with the
+    argument, which reached the constructor (Sutton and Barto's reward: 0 a step, −1 at
+    the fall)."""
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    label = "cartpole.sutton_barto_reward-true"
+    args = ["-m", "env=cartpole", "+env.kwargs.sutton_barto_reward=true", *SMALL,
+            "controller=none", "seed=0", "train.population=1,2", f"tracking.uri={uri}"]  # fmt: skip
+    proc = run_cli("cdqn.train", args, tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    runs = runs_of(uri)
+    assert sorted(r.info.run_name for r in runs) == [f"{label}-none-w64-e3-s{s}" for s in (0, 0, 1)]
+    client = MlflowClient(uri)
+    for r in runs:
+        assert (r.data.tags["env"], r.data.tags["env_id"]) == (label, "CartPole-v1")
+        assert r.data.params["env.max_episode_steps"] == "200"
+        assert r.data.params["weights.name"] == "cartpole"
+        assert set(episode_returns(client, r.info.run_id)) <= {0.0, -1.0}
 
 
 @pytest.mark.slow

@@ -29,7 +29,11 @@ threshold.  When ``env.id`` is not the id of the preset named ``env.name``
 A preset's own id with another episode cap (``env=cartpole env.max_episode_steps=500``) is
 another task: it is labelled by the id (``CartPole-v1``, or ``CartPole-v1-cap300`` for a cap
 its registration does not have) and, at the registration's cap, takes its threshold unless one
-was set; it keeps the preset's weights.
+was set; it keeps the preset's weights.  A preset's own id with constructor arguments at its
+cap is the preset's task on another environment instance: labelled ``<preset>.<key>-<value>``
+(``env=cartpole +env.kwargs.sutton_barto_reward=true``:
+``cartpole.sutton_barto_reward-true``, :func:`cdqn.envs.make.kwargs_label`), with the
+preset's cap, threshold and weights.
 
 ``controller.synthesis.ntk_bounds`` becomes ``measured`` when the weights carry no box of this
 environment: ``weights=generic`` (on any id), or, for a run of an id no preset names, a
@@ -67,7 +71,7 @@ from cdqn.config import (
     to_schema,
     validate,
 )
-from cdqn.envs.make import env_label, registration
+from cdqn.envs.make import env_label, kwargs_label, registration
 
 _COMMAND_LINE: ContextVar[tuple[str, ...] | None] = ContextVar("cdqn_overrides", default=None)
 GENERIC = "generic"
@@ -112,6 +116,9 @@ def adopt(cfg: DictConfig) -> Adopted:
             changed += _take_registration(env, preset, spec, given)
         elif preset is not None and env.max_episode_steps != preset.max_episode_steps:
             changed += _other_cap(env, preset, spec, given)
+        elif preset is not None and _kwargs(env):
+            env.name = preset.name + kwargs_label(_kwargs(env))
+            changed.append(f"named {env.name}")
         if preset is None or preset.id != env.id:
             changed += _weights_of_its_own(out, given, "weights" in _keys(overrides))
         if preset is None or preset.id != env.id or out.weights.name == GENERIC:
@@ -128,6 +135,8 @@ def adopt(cfg: DictConfig) -> Adopted:
         head = f"env.id={env.id} is not env={preset.name}'s {preset.id}: "
     elif preset is not None and env.max_episode_steps != preset.max_episode_steps:
         head = f"env={preset.name} at another episode cap: "
+    elif preset is not None and _kwargs(env):
+        head = f"env={preset.name} with constructor arguments env.kwargs: "
     return Adopted(out, conf, head + ", ".join(changed) if changed else None)
 
 
