@@ -119,6 +119,43 @@ def test_a_presets_own_id_with_constructor_arguments_is_labelled_by_them(env: st
     assert check_overrides(given) == []
 
 
+@pytest.mark.parametrize(
+    ("preset", "env_id", "key", "value"),
+    [
+        ("acrobot", "CartPole-v1", "normalize_scale", [1.0, 1.0, 1.0, 1.0, 2.0, 2.0]),
+        ("cartpole_pole", "Acrobot-v1", "obs_indices", [2, 3]),
+    ],
+)
+def test_another_id_drops_the_presets_features_by_index(
+    preset: str, env_id: str, key: str, value: list
+) -> None:
+    """``env.obs_indices`` and ``env.normalize_scale`` name the preset's own observation
+    features: a run of another id sees its own observation, unless the command line sets
+    them.  (``cartpole_pole``'s weights preset, built on ``cartpole``'s, is read as Hydra
+    composes it.)"""
+    given = [f"env={preset}", f"env.id={env_id}"]
+    with command_line(given):
+        adopted = adopt(compose_config(given))
+    assert OmegaConf.select(adopted.cfg, f"env.{key}") is None
+    assert adopted.change is not None and f"env.{key}=null (not {preset}'s {value})" in (
+        adopted.change
+    )
+    assert adopted.conf.weights.name == GENERIC and adopt(adopted.cfg).change is None
+    assert check_overrides(given) == []
+    own = [*given, f"env.{key}=[1,1]"]
+    with command_line(own):
+        kept = adopt(compose_config(own)).cfg
+    assert OmegaConf.to_container(kept.env)[key] == [1, 1]
+
+
+def test_a_normalize_scale_of_another_size_is_refused_with_normalize_off() -> None:
+    """A study may turn ``env.normalize`` on: the widths are checked before it starts."""
+    errors = check_overrides(["env=acrobot", "env.normalize=false", "env.normalize_scale=[1,1]"])
+    assert len(errors) == 1 and errors[0].startswith(
+        "env.normalize_scale=[1.0, 1.0]: give 6 half-widths > 0, one per observed feature"
+    ), errors
+
+
 @pytest.mark.parametrize("env", sorted(env_presets()))
 def test_presets_are_left_as_they_are_and_hash_as_before(env: str) -> None:
     cfg = compose_config([f"env={env}"])

@@ -151,6 +151,8 @@ def _message(overrides: list[str]) -> str:
          "env.kwargs={'foo': 1}: FrozenLake-v1's constructor refused them (TypeError: "),
         (["env.id=HalfCheetah-v2", "env.max_episode_steps=10"],
          "env.id='HalfCheetah-v2' cannot be made here: its entry point "),
+        (["env=acrobot", "env.id=CartPole-v1", "controller=ddqn", "env.normalize_scale=[1,2]"],
+         "env.normalize_scale=[1.0, 2.0]: give 4 half-widths > 0, one per observed feature"),
     ],
 )  # fmt: skip
 def test_the_tuner_refuses_an_environment_it_cannot_make_before_it_starts(
