@@ -148,14 +148,6 @@ def test_another_id_drops_the_presets_features_by_index(
     assert OmegaConf.to_container(kept.env)[key] == [1, 1]
 
 
-def test_a_normalize_scale_of_another_size_is_refused_with_normalize_off() -> None:
-    """A study may turn ``env.normalize`` on: the widths are checked before it starts."""
-    errors = check_overrides(["env=acrobot", "env.normalize=false", "env.normalize_scale=[1,1]"])
-    assert len(errors) == 1 and errors[0].startswith(
-        "env.normalize_scale=[1.0, 1.0]: give 6 half-widths > 0, one per observed feature"
-    ), errors
-
-
 @pytest.mark.parametrize("env", sorted(env_presets()))
 def test_presets_are_left_as_they_are_and_hash_as_before(env: str) -> None:
     cfg = compose_config([f"env={env}"])

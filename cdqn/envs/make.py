@@ -208,15 +208,15 @@ def make_env(cfg: EnvConfig) -> gym.Env:
                 f"[0, {space.shape[0]}) for {cfg.id}"
             )
         env = ObservationSubset(env, list(cfg.obs_indices))
-    widths = cfg.normalize_scale  # checked with normalize off too: a study may turn it on
-    n = of_kind(env.observation_space, Box).shape[0]
-    if widths is not None and (len(widths) != n or not all(w > 0 for w in widths)):
-        env.close()
-        raise ConfigError(
-            f"env.normalize_scale={list(widths)}: give {n} half-widths > 0, one per "
-            f"observed feature of {cfg.id}, or null"
-        )
     if cfg.normalize:
+        widths = cfg.normalize_scale
+        n = of_kind(env.observation_space, Box).shape[0]
+        if widths is not None and (len(widths) != n or not all(w > 0 for w in widths)):
+            env.close()
+            raise ConfigError(
+                f"env.normalize_scale={list(widths)}: give {n} half-widths > 0, one per "
+                f"observed feature of {cfg.id}, or null"
+            )
         env = ObservationScale(env, widths)
     if cfg.rbf_centres is not None:
         env = _radial_features(env, cfg)
