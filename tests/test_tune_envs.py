@@ -121,12 +121,9 @@ def test_a_presets_own_id_with_constructor_arguments_is_a_study_of_its_label(
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     _store(uri, "cdqn-tune", tmp_path)
     label = "cartpole.sutton_barto_reward-true"
-    summary = _study([
-        "env=cartpole", "+env.kwargs.sutton_barto_reward=true", "controller=ddqn",
-        f"tracking.uri={uri}", f"tune.storage=sqlite:///{tmp_path / 'optuna.db'}",
-        f"tune.preset_dir={tmp_path / 'presets'}", "network.width=16", "tune.trials=1",
-        "tune.seeds=1", "tune.episodes=3", "tune.eval_seeds=0", "tune.pruner.kind=none",
-    ])  # fmt: skip
+    summary = _study(
+        ["env=cartpole", "+env.kwargs.sutton_barto_reward=true", *_one_trial(tmp_path, uri)]
+    )
     assert summary["study"] == f"{label}-ddqn"
     assert Path(summary["preset"]).name == f"tuned_{label}-ddqn.yaml"
     tuned = OmegaConf.load(summary["preset"])
@@ -144,18 +141,24 @@ def test_another_id_than_the_presets_is_tuned_on_its_own_features(tmp_path: Path
     with a traceback when it kept them)."""
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     _store(uri, "cdqn-tune", tmp_path)
-    summary = _study([
-        "env=acrobot", "env.id=CartPole-v1", "controller=ddqn",
-        "tune.space.normalize.choices=[true]", f"tracking.uri={uri}",
-        f"tune.storage=sqlite:///{tmp_path / 'optuna.db'}",
-        f"tune.preset_dir={tmp_path / 'presets'}", "network.width=16", "tune.trials=1",
-        "tune.seeds=1", "tune.episodes=2", "tune.eval_seeds=0", "tune.pruner.kind=none",
-    ])  # fmt: skip
+    normalize = "tune.space.normalize.choices=[true]"
+    summary = _study(["env=acrobot", "env.id=CartPole-v1", normalize, *_one_trial(tmp_path, uri)])
     assert summary["study"] == "CartPole-v1-ddqn" and summary["counts"]["complete"] == 1
     members = [r for r in _runs(tmp_path) if "population" in r.data.tags]
     assert members and all(r.data.tags["env"] == "CartPole-v1" for r in members)
     assert {r.data.params["env.normalize"] for r in members} == {"True"}
     assert {r.data.params["env.normalize_scale"] for r in members} == {"None"}
+
+
+def _one_trial(tmp_path: Path, uri: str) -> list[str]:
+    """A study of one Double DQN trial, one seed, three episodes, no evaluation, in
+    ``tmp_path``."""
+    return [
+        "controller=ddqn", f"tracking.uri={uri}",
+        f"tune.storage=sqlite:///{tmp_path / 'optuna.db'}",
+        f"tune.preset_dir={tmp_path / 'presets'}", "network.width=16", "tune.trials=1",
+        "tune.seeds=1", "tune.episodes=3", "tune.eval_seeds=0", "tune.pruner.kind=none",
+    ]  # fmt: skip
 
 
 def _message(overrides: list[str]) -> str:
