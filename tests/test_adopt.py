@@ -100,6 +100,54 @@ def test_constructor_arguments_make_the_label_distinct_and_deterministic() -> No
     assert len(names) == 3
 
 
+@pytest.mark.parametrize("env", ["cartpole", "cartpole_pole"])
+def test_a_presets_own_id_with_constructor_arguments_is_labelled_by_them(env: str) -> None:
+    """``env=cartpole +env.kwargs.sutton_barto_reward=true`` is not ``cartpole``: its label
+    carries the arguments as an adopted id's does; the preset's cap, threshold, weights and
+    box stay."""
+    given = [f"env={env}", "+env.kwargs.sutton_barto_reward=true"]
+    with command_line(given):
+        adopted = adopt(compose_config(given))
+    label = f"{env}.sutton_barto_reward-true"
+    preset = env_presets()[env]
+    conf = adopted.conf
+    assert conf.env.name == label and adopted.box_source == "config"
+    assert (conf.env.max_episode_steps, conf.env.solve_threshold) == (200, 195.0)
+    assert (conf.env.obs_indices, conf.weights.name) == (preset.obs_indices, env)
+    assert adopted.change == f"env={env} with constructor arguments env.kwargs: named {label}"
+    assert adopt(adopted.cfg).change is None
+    assert check_overrides(given) == []
+
+
+@pytest.mark.parametrize(
+    ("preset", "env_id", "key", "value"),
+    [
+        ("acrobot", "CartPole-v1", "normalize_scale", [1.0, 1.0, 1.0, 1.0, 2.0, 2.0]),
+        ("cartpole_pole", "Acrobot-v1", "obs_indices", [2, 3]),
+    ],
+)
+def test_another_id_drops_the_presets_features_by_index(
+    preset: str, env_id: str, key: str, value: list
+) -> None:
+    """``env.obs_indices`` and ``env.normalize_scale`` name the preset's own observation
+    features: a run of another id sees its own observation, unless the command line sets
+    them.  (``cartpole_pole``'s weights preset, built on ``cartpole``'s, is read as Hydra
+    composes it.)"""
+    given = [f"env={preset}", f"env.id={env_id}"]
+    with command_line(given):
+        adopted = adopt(compose_config(given))
+    assert OmegaConf.select(adopted.cfg, f"env.{key}") is None
+    assert adopted.change is not None and f"env.{key}=null (not {preset}'s {value})" in (
+        adopted.change
+    )
+    assert adopted.conf.weights.name == GENERIC and adopt(adopted.cfg).change is None
+    assert check_overrides(given) == []
+    own = [*given, f"env.{key}=[1,1]"]
+    with command_line(own):
+        kept = adopt(compose_config(own)).cfg
+    assert OmegaConf.to_container(kept.env)[key] == [1, 1]
+
+
 @pytest.mark.parametrize("env", sorted(env_presets()))
 def test_presets_are_left_as_they_are_and_hash_as_before(env: str) -> None:
     cfg = compose_config([f"env={env}"])
@@ -480,6 +528,30 @@ def test_multirun_and_population_runs_are_the_environments(store: Store) -> None
         if r.data.tags["controller"] == "none":
             _assert_adopted(r, "none")
             assert r.data.params["env.kwargs"] == "{}"
+
+
+@pytest.mark.slow
+def test_a_presets_own_id_with_constructor_arguments_runs_under_their_label(
+    tmp_path: Path,
+) -> None:
+    """``python -m cdqn.train -m env=cartpole +env.kwargs.sutton_barto_reward=true`` with a
+    single run and a population of two: every run is named and tagged by the label with the
+    argument, which reached the constructor (Sutton and Barto's reward: 0 a step, −1 at
+    the fall)."""
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    label = "cartpole.sutton_barto_reward-true"
+    args = ["-m", "env=cartpole", "+env.kwargs.sutton_barto_reward=true", *SMALL,
+            "controller=none", "seed=0", "train.population=1,2", f"tracking.uri={uri}"]  # fmt: skip
+    proc = run_cli("cdqn.train", args, tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    runs = runs_of(uri)
+    assert sorted(r.info.run_name for r in runs) == [f"{label}-none-w64-e3-s{s}" for s in (0, 0, 1)]
+    client = MlflowClient(uri)
+    for r in runs:
+        assert (r.data.tags["env"], r.data.tags["env_id"]) == (label, "CartPole-v1")
+        assert r.data.params["env.max_episode_steps"] == "200"
+        assert r.data.params["weights.name"] == "cartpole"
+        assert set(episode_returns(client, r.info.run_id)) <= {0.0, -1.0}
 
 
 @pytest.mark.slow

@@ -113,6 +113,54 @@ def test_a_study_refuses_another_environment_under_its_name(tmp_path: Path) -> N
     assert again["counts"]["complete"] == 2
 
 
+def test_a_presets_own_id_with_constructor_arguments_is_a_study_of_its_label(
+    tmp_path: Path,
+) -> None:
+    """``env=cartpole +env.kwargs.sutton_barto_reward=true``: the study, its preset file,
+    its parent and member runs carry the label with the argument, not ``cartpole``."""
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    _store(uri, "cdqn-tune", tmp_path)
+    label = "cartpole.sutton_barto_reward-true"
+    summary = _study(
+        ["env=cartpole", "+env.kwargs.sutton_barto_reward=true", *_one_trial(tmp_path, uri)]
+    )
+    assert summary["study"] == f"{label}-ddqn"
+    assert Path(summary["preset"]).name == f"tuned_{label}-ddqn.yaml"
+    tuned = OmegaConf.load(summary["preset"])
+    assert (tuned.env.name, tuned.env.kwargs) == (label, {"sutton_barto_reward": True})
+    (parent,) = _runs(tmp_path, kind="tune")
+    assert parent.info.run_name == f"tune-{label}-ddqn" and parent.data.tags["env"] == label
+    members = [r for r in _runs(tmp_path) if "population" in r.data.tags]
+    assert members and {r.data.tags["env"] for r in members} == {label}
+    assert all(r.info.run_name.startswith(f"{label}-ddqn-") for r in members)
+
+
+def test_another_id_than_the_presets_is_tuned_on_its_own_features(tmp_path: Path) -> None:
+    """``env=acrobot env.id=CartPole-v1``: Acrobot's six ``env.normalize_scale`` widths are
+    not CartPole's, so a trial that scales the observation scales it to [−1, 1] (it stopped
+    with a traceback when it kept them)."""
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    _store(uri, "cdqn-tune", tmp_path)
+    normalize = "tune.space.normalize.choices=[true]"
+    summary = _study(["env=acrobot", "env.id=CartPole-v1", normalize, *_one_trial(tmp_path, uri)])
+    assert summary["study"] == "CartPole-v1-ddqn" and summary["counts"]["complete"] == 1
+    members = [r for r in _runs(tmp_path) if "population" in r.data.tags]
+    assert members and all(r.data.tags["env"] == "CartPole-v1" for r in members)
+    assert {r.data.params["env.normalize"] for r in members} == {"True"}
+    assert {r.data.params["env.normalize_scale"] for r in members} == {"None"}
+
+
+def _one_trial(tmp_path: Path, uri: str) -> list[str]:
+    """A study of one Double DQN trial, one seed, three episodes, no evaluation, in
+    ``tmp_path``."""
+    return [
+        "controller=ddqn", f"tracking.uri={uri}",
+        f"tune.storage=sqlite:///{tmp_path / 'optuna.db'}",
+        f"tune.preset_dir={tmp_path / 'presets'}", "network.width=16", "tune.trials=1",
+        "tune.seeds=1", "tune.episodes=3", "tune.eval_seeds=0", "tune.pruner.kind=none",
+    ]  # fmt: skip
+
+
 def _message(overrides: list[str]) -> str:
     with pytest.raises(ConfigError) as err:
         _study(overrides)

@@ -13,6 +13,8 @@ threshold.  When ``env.id`` is not the id of the preset named ``env.name``
   its module, ``/`` → ``-``, then ``.<key>-<value>`` per constructor argument ``env.kwargs``,
   keys sorted), so the run is named ``<label>-<controller>-s<seed>``, tagged ``env=<label>``
   and grouped under it by the analysis and the tuner;
+* ``env.obs_indices`` and ``env.normalize_scale`` (:data:`FEATURE_KEYS`: the preset's
+  features by index) become null unless the command line gives them;
 * ``env.max_episode_steps`` and ``env.solve_threshold`` come from the id's registration
   (``max_episode_steps``, ``reward_threshold``) unless the command line gives them, or
   they were set to something other than the preset's values (a configuration composed in
@@ -29,7 +31,11 @@ threshold.  When ``env.id`` is not the id of the preset named ``env.name``
 A preset's own id with another episode cap (``env=cartpole env.max_episode_steps=500``) is
 another task: it is labelled by the id (``CartPole-v1``, or ``CartPole-v1-cap300`` for a cap
 its registration does not have) and, at the registration's cap, takes its threshold unless one
-was set; it keeps the preset's weights.
+was set; it keeps the preset's weights.  A preset's own id with constructor arguments at its
+cap is the preset's task on another environment instance: labelled ``<preset>.<key>-<value>``
+(``env=cartpole +env.kwargs.sutton_barto_reward=true``:
+``cartpole.sutton_barto_reward-true``, :func:`cdqn.envs.make.kwargs_label`), with the
+preset's cap, threshold and weights.
 
 ``controller.synthesis.ntk_bounds`` becomes ``measured`` when the weights carry no box of this
 environment: ``weights=generic`` (on any id), or, for a run of an id no preset names, a
@@ -67,12 +73,15 @@ from cdqn.config import (
     to_schema,
     validate,
 )
-from cdqn.envs.make import env_label, registration
+from cdqn.envs.make import env_label, kwargs_label, registration
 
 _COMMAND_LINE: ContextVar[tuple[str, ...] | None] = ContextVar("cdqn_overrides", default=None)
 GENERIC = "generic"
 """The shipped weights preset of an environment without one of its own
 (``conf/weights/generic.yaml``)."""
+FEATURE_KEYS = ("obs_indices", "normalize_scale")
+"""Settings of an environment preset that name its observation's features one by one: a
+run of another id drops them unless it sets them (:func:`adopt`)."""
 BOX_SOURCES = ("config", "measured")
 """Where the robust designs' NTK box comes from (``controller.synthesis.ntk_bounds``)."""
 
@@ -112,6 +121,9 @@ def adopt(cfg: DictConfig) -> Adopted:
             changed += _take_registration(env, preset, spec, given)
         elif preset is not None and env.max_episode_steps != preset.max_episode_steps:
             changed += _other_cap(env, preset, spec, given)
+        elif preset is not None and _kwargs(env):
+            env.name = preset.name + kwargs_label(_kwargs(env))
+            changed.append(f"named {env.name}")
         if preset is None or preset.id != env.id:
             changed += _weights_of_its_own(out, given, "weights" in _keys(overrides))
         if preset is None or preset.id != env.id or out.weights.name == GENERIC:
@@ -128,6 +140,8 @@ def adopt(cfg: DictConfig) -> Adopted:
         head = f"env.id={env.id} is not env={preset.name}'s {preset.id}: "
     elif preset is not None and env.max_episode_steps != preset.max_episode_steps:
         head = f"env={preset.name} at another episode cap: "
+    elif preset is not None and _kwargs(env):
+        head = f"env={preset.name} with constructor arguments env.kwargs: "
     return Adopted(out, conf, head + ", ".join(changed) if changed else None)
 
 
@@ -136,19 +150,21 @@ def env_presets(conf_dir: Path = CONF_DIR) -> dict[str, EnvConfig]:
     """The environment presets shipped in ``conf_dir/env/*.yaml`` (``cartpole``, ``acrobot``,
     ...) by their ``name``."""
     folder = conf_dir / "env"
-
-    def load(stem: str) -> DictConfig:
-        node = OmegaConf.load(folder / f"{stem}.yaml")
-        assert isinstance(node, DictConfig)
-        bases = [d for d in node.pop("defaults", []) if d != "_self_"]
-        return merged(*[load(b) for b in bases], node)
-
     out: dict[str, EnvConfig] = {}
     for path in sorted(folder.glob("*.yaml")):
-        preset = merged(OmegaConf.structured(EnvConfig), load(path.stem))
+        preset = merged(OmegaConf.structured(EnvConfig), _group_file(folder, path.stem))
         env = to_schema(preset, EnvConfig)
         out[env.name] = env
     return out
+
+
+def _group_file(folder: Path, stem: str) -> DictConfig:
+    """``folder/<stem>.yaml`` over the files its ``defaults`` list names in the same group
+    (``cartpole_pole`` over ``cartpole``), as Hydra composes it."""
+    node = OmegaConf.load(folder / f"{stem}.yaml")
+    assert isinstance(node, DictConfig)
+    bases = [d for d in node.pop("defaults", []) if d != "_self_"]
+    return merged(*[_group_file(folder, b) for b in bases], node)
 
 
 @contextmanager
@@ -208,6 +224,11 @@ def _take_registration(
     label = env_label(str(env.id), _kwargs(env))
     env.name = label
     changed = [f"named {label}"]
+    for key in FEATURE_KEYS:  # indices and widths of the preset's observation, not this one's
+        value = OmegaConf.to_container(env, resolve=True)[key]
+        if value is not None and value == getattr(preset, key) and f"env.{key}" not in given:
+            env[key] = None
+            changed.append(f"env.{key}=null (not {preset.name}'s {value})")
     if env.max_episode_steps == preset.max_episode_steps and "env.max_episode_steps" not in given:
         env.max_episode_steps = cap
         changed.append(f"episode cap {cap} (its registration)")
@@ -249,7 +270,7 @@ def shipped_weights(name: str) -> DictConfig:
     """The shipped weights preset ``conf/weights/<name>.yaml`` over the schema's defaults, as
     composing ``weights=<name>`` gives it."""
     node = OmegaConf.merge(
-        OmegaConf.structured(WeightsConfig), OmegaConf.load(CONF_DIR / "weights" / f"{name}.yaml")
+        OmegaConf.structured(WeightsConfig), _group_file(CONF_DIR / "weights", name)
     )
     assert isinstance(node, DictConfig)
     return node

@@ -77,10 +77,15 @@ def env_label(env_id: str, kwargs: Mapping[str, Any] | None = None, cap: int | N
     is then safe wherever it is used: ``weights=tuned_<label>-<agent>``, file names, MLflow
     run names and tags, Optuna study names."""
     label = EnvId.parse(env_id).label + ("" if cap is None else f"-cap{cap}")
+    return label + kwargs_label(kwargs)
+
+
+def kwargs_label(kwargs: Mapping[str, Any] | None) -> str:
+    """The part of a label that names constructor arguments (:func:`env_label`): one
+    ``.<key>-<value>`` per argument, keys sorted; empty without arguments.  A preset's own id
+    with arguments is ``<preset><this>`` (``cartpole.sutton_barto_reward-true``)."""
     args = dict(kwargs or {})
-    for key in sorted(args):
-        label += f".{_label_text(key)}-{_label_text(args[key])}"
-    return label
+    return "".join(f".{_label_text(key)}-{_label_text(args[key])}" for key in sorted(args))
 
 
 def _label_text(value: Any) -> str:
