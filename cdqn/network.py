@@ -494,6 +494,12 @@ class Replay(NamedTuple):
     terminated: np.ndarray
 
 
+@njit(**_JIT)
+def member_replay(r, k):
+    """Member ``k``'s buffer of a :class:`Replay`."""
+    return Replay(r.obs[k], r.next_obs[k], r.actions[k], r.rewards[k], r.terminated[k])
+
+
 def step_settings_array(lr: float, discount: float, dtype: np.dtype) -> np.ndarray:
     """``(α, γ, 0)`` in the network's dtype, as :func:`double_dqn_learn` takes them."""
     return np.array([lr, discount, 0.0], dtype=dtype)
@@ -523,10 +529,7 @@ def double_dqn_learn(
     from cdqn.ddqn_kernels import BLOCK  # Double DQN's alone
     from cdqn.ddqn_kernels import learn as minibatch_learn
 
-    minibatch_learn(
-        online.w1t, online.b1, online.w2, online.b2, target.w1t, target.b1, target.w2,
-        target.b2, *replay, idx, members, hyper, BLOCK, last_loss,
-    )  # fmt: skip
+    minibatch_learn(online.params, target.params, replay, idx, members, hyper, BLOCK, last_loss)
 
 
 def double_dqn_step(

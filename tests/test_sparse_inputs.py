@@ -22,6 +22,7 @@ from cdqn.network import (
     Params,
     Pending,
     QNetwork,
+    Replay,
     apply_pending_row,
     forward_pending_row,
     ntk_autograd,
@@ -205,7 +206,8 @@ def test_sparse_and_unrolled_minibatch_kernels_take_the_same_step(dtype: type) -
     results = []
     for learn in (sparse_learn, kernels(n, m).learn):
         p, loss = [a.copy() for a in params], np.empty(2)
-        learn(*p, *target, obs, nxt, *buf, idx, member, hyper, BLOCK, loss)
+        learn(Params(*p), Params(*target), Replay(obs, nxt, *buf), idx, member, hyper, BLOCK,
+              loss)  # fmt: skip
         results.append((p, loss[0]))
     (p_sparse, l_sparse), (p_dense, l_dense) = results
     rtol = 1e-12 if dtype == np.float64 else 2e-5
