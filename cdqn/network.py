@@ -43,12 +43,13 @@ Double DQN's minibatch step does the same per minibatch (:mod:`cdqn.ddqn_kernels
 
 **Bundles.**  The kernels take their arrays in small NamedTuples: a network's parameters
 (:class:`Params`), a forward pass (:class:`Forward`, :class:`StackedForward`), a deferred
-``W_1`` update (:class:`Pending`); the agents add theirs.  A NamedTuple is a tuple: compiled
-code reads its fields by name from the same arrays, so the memory and the arithmetic are
-those of the arrays passed one by one.  The kernels called from Python take their bundles
-as plain tuples (``tuple(bundle)``, fields in the bundle's order) and name them on entry
-(``Params(*net)``): numba types a plain tuple argument in C, a NamedTuple in Python, which
-costs about 2 µs per bundle and call, a tenth of a population member's step.
+``W_1`` update (:class:`Pending`, :class:`StackedPending`); the agents add theirs.  A
+NamedTuple is a tuple: compiled code reads its fields by name from the same arrays, so the
+memory and the arithmetic are those of the arrays passed one by one.  The kernels called
+from Python take their bundles as plain tuples (``tuple(bundle)``, fields in the bundle's
+order) and name them on entry (``Params(*net)``): numba types a plain tuple argument in C,
+a NamedTuple in Python, which costs about 2 µs per bundle and call, a tenth of a
+population member's step.
 """
 
 from __future__ import annotations
@@ -153,14 +154,21 @@ class StackedForward(NamedTuple):
 
 
 class Pending(NamedTuple):
-    """A deferred ``W_1`` update ``W_1ᵀ[i] += sx_i g`` (:func:`sgd_deferred_row`):
+    """One member's deferred ``W_1`` update ``W_1ᵀ[i] += sx_i g`` (:func:`sgd_deferred_row`):
     ``sx = s x`` ``(n_obs,)``, ``g = ∂Q_a/∂b_1`` ``(width,)`` and whether it is still to be
-    applied; one member's (``pending`` a bool) or a stack's (a leading member axis,
-    ``pending`` ``(K,)``)."""
+    applied."""
 
     sx: np.ndarray
     g: np.ndarray
-    pending: np.ndarray | bool
+    pending: bool
+
+
+class StackedPending(NamedTuple):
+    """:class:`Pending` of ``K`` members: shapes ``(K, n_obs)``, ``(K, width)``, ``(K,)``."""
+
+    sx: np.ndarray
+    g: np.ndarray
+    pending: np.ndarray
 
 
 class TDTerms(NamedTuple):
@@ -199,7 +207,7 @@ def member_pass(f, k):
 
 @njit(**_JIT)
 def member_pending(d, k):
-    """Member ``k``'s :class:`Pending` of a stack's."""
+    """Member ``k``'s :class:`Pending` of a :class:`StackedPending`."""
     return Pending(d.sx[k], d.g[k], d.pending[k])
 
 

@@ -49,9 +49,9 @@ from cdqn.control.runtime import (
 from cdqn.network import (
     Forward,
     Params,
-    Pending,
     QNetwork,
     StackedForward,
+    StackedPending,
     StackedTwoLayer,
     apply_pending_row,
     forward_pending_row,
@@ -339,9 +339,6 @@ class ControlledPopulation:
         self.x = np.full((k, spec.n_obs), np.nan, dtype)
         self.p = np.empty((k, spec.width), dtype)
         self.q = np.empty((k, spec.n_actions), dtype)
-        # One member's step at a time: the pass at s' (kept small so that it stays in
-        # cache); Θ1, Θ2 and α δ rounded to the network's dtype, as the single run's arrays
-        # hold them.
         self.scratch = StepScratch(
             np.empty(spec.n_obs, dtype),
             np.empty(spec.width, dtype),
@@ -383,9 +380,9 @@ class ControlledPopulation:
         return StackedForward(self.x, self.p, self.q)
 
     @property
-    def deferred(self) -> Pending:
+    def deferred(self) -> StackedPending:
         """Each member's pending ``W_1`` update (module docstring)."""
-        return Pending(self.sx, self.g, self.pending)
+        return StackedPending(self.sx, self.g, self.pending)
 
     def flush(self) -> None:
         """Apply every member's pending ``W_1`` update (module docstring)."""
@@ -496,7 +493,7 @@ def flag_step(log, k, healthy, ended):
 
 @njit(cache=True)
 def _flush_kernel(w1t, pending):
-    d = Pending(*pending)
+    d = StackedPending(*pending)
     for k in range(w1t.shape[0]):
         if d.pending[k]:
             apply_pending_row(w1t[k], d.sx[k], d.g[k])
@@ -509,7 +506,7 @@ def _act_kernel(net, passes, pending, obs, plan, actions):
     ``x`` already holds it (as :meth:`cdqn.network.StackedTwoLayer.forward` with ``reuse``),
     then the planned random action or ``argmax Q(obs, ·)``.  Bundles as plain tuples
     (:mod:`cdqn.network`, bundles)."""
-    n, f, d = Params(*net), StackedForward(*passes), Pending(*pending)
+    n, f, d = Params(*net), StackedForward(*passes), StackedPending(*pending)
     for k in range(obs.shape[0]):
         _pass_at(k, obs[k], n, f, d)
         actions[k] = plan[k] if plan[k] >= 0 else np.argmax(f.q[k])
@@ -586,9 +583,11 @@ def _update_kernel(net, passes, scratch, pending, actions, step, settings, contr
     """:meth:`ControlledPopulation.update` (module docstring), member by member
     (:func:`_controlled_step`).  Bundles as plain tuples (:mod:`cdqn.network`, bundles):
     :class:`~cdqn.network.Params`, :class:`~cdqn.network.StackedForward`,
-    :class:`StepScratch`, :class:`~cdqn.network.Pending`, :class:`cdqn.vector_env.VectorStep`,
-    :class:`StepSettings`, :class:`ControllerView`, :class:`StepLog`."""
-    n, f, s2, d = Params(*net), StackedForward(*passes), StepScratch(*scratch), Pending(*pending)
+    :class:`StepScratch`, :class:`~cdqn.network.StackedPending`,
+    :class:`cdqn.vector_env.VectorStep`, :class:`StepSettings`, :class:`ControllerView`,
+    :class:`StepLog`."""
+    n, f, s2 = Params(*net), StackedForward(*passes), StepScratch(*scratch)
+    d = StackedPending(*pending)
     st, c, lg = VectorStep(*step), ControllerView(*controller), StepLog(*log)
     stp = StepSettings(*settings)
     flagged = 0
@@ -618,8 +617,9 @@ def _replay_kernel(k, net, passes, scratch, pending, tail, repeats, settings, co
     pass already holds it, as :meth:`cdqn.agents.ControlledAgent.update` reuses its cached
     pass).  Returns the number of updates, or ``−(i + 1)`` when update ``i`` failed the
     divergence test.  Bundles as in :func:`_update_kernel`."""
-    n, f, s2, d = Params(*net), StackedForward(*passes), StepScratch(*scratch), Pending(*pending)
-    tr, c, stp = Transitions(*tail), ControllerView(*controller), StepSettings(*settings)
+    n, f, s2 = Params(*net), StackedForward(*passes), StepScratch(*scratch)
+    d, tr, c = StackedPending(*pending), Transitions(*tail), ControllerView(*controller)
+    stp = StepSettings(*settings)
     count = 0
     for _ in range(repeats):
         for j in range(tr.obs.shape[0]):
