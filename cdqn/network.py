@@ -399,6 +399,8 @@ class StackedTwoLayer:
 
     def __init__(self, w1t: np.ndarray, b1: np.ndarray, w2: np.ndarray, b2: np.ndarray) -> None:
         self.w1t, self.b1, self.w2, self.b2 = w1t, b1, w2, b2
+        self.params = Params(w1t, b1, w2, b2)
+        """The same arrays as the kernels take them."""
         self.dtype = w1t.dtype
         self.rows = np.arange(len(w1t))
 
@@ -415,15 +417,11 @@ class StackedTwoLayer:
     def __len__(self) -> int:
         return len(self.w1t)
 
-    @property
-    def params(self) -> Params:
-        """The stacked parameters as the kernels take them."""
-        return Params(self.w1t, self.b1, self.w2, self.b2)
-
     def select(self, keep: np.ndarray) -> None:
         """Keep only the members ``keep`` (indices or mask), in that order."""
         self.w1t, self.b1 = self.w1t[keep], self.b1[keep]
         self.w2, self.b2 = self.w2[keep], self.b2[keep]
+        self.params = Params(self.w1t, self.b1, self.w2, self.b2)
         self.rows = np.arange(len(self.w1t))
 
     def copy_to(self, k: int, net: QNetwork) -> None:
