@@ -55,10 +55,12 @@ import sys
 import tempfile
 from pathlib import Path
 from types import ModuleType
-from typing import TypedDict
+from typing import NamedTuple, TypedDict
 
 import numpy as np
 from numba import njit
+
+from cdqn.network import Params, Replay, member_params, member_replay
 
 BLOCK = 256
 """Hidden units per block of the forward loop: the block's rows of both networks' parameters
@@ -81,10 +83,12 @@ _JIT: JitOptions = {"cache": True, "fastmath": {"reassoc", "contract"}}
 
 
 @njit(**_JIT)
-def td_errors(q, acts, idx, buf_rewards, buf_terminated, discount, delta, gb2):
+def td_errors(q, acts, idx, replay, discount, delta, gb2):
     """``δ_i`` (module docstring) from the passes ``q[i] = (Q(s_i, ·), Q(s'_i, ·),
-    Q̄(s'_i, ·))`` into ``delta``; ``Σ_i δ_i [a_i = a]`` added to ``gb2[a]``; returns the
-    loss ``½ Σ_i δ_i²``."""
+    Q̄(s'_i, ·))`` and the rewards and terminations of the transitions ``idx`` of one
+    member's ``replay`` into ``delta``; ``Σ_i δ_i [a_i = a]`` added to ``gb2[a]``; returns
+    the loss ``½ Σ_i δ_i²``."""
+    buf_rewards, buf_terminated = replay.rewards, replay.terminated
     loss = 0.0
     for i in range(acts.shape[0]):
         j, qi = idx[i], q[i]
@@ -147,11 +151,23 @@ def _nonzeros(buf, idx, like):
     return ptr, col[:t], val[:t]
 
 
+class Passes(NamedTuple):
+    """One array per pass of a sample: ``Q(s_i, ·)`` (``s``), ``Q(s'_i, ·)`` (``s2``) and
+    ``Q̄(s'_i, ·)`` (``target``)."""
+
+    s: np.ndarray
+    s2: np.ndarray
+    target: np.ndarray
+
+
 @njit(**_JIT)
-def _sparse_forward(w1t, b1, w2, tw1t, tb1, tw2, s, nxt, i, j0, j1, out, ps, pn, pt, zero):
+def _sparse_forward(online, target, s, nxt, i, j0, j1, out, h, zero):
     """Sample ``i``'s three passes (``Q(s_i, ·)``, ``Q(s'_i, ·)``, ``Q̄(s'_i, ·)``) over the
-    hidden units ``j0:j1``, added to ``out``: the pre-activations over the nonzero inputs of
+    hidden units ``j0:j1`` of the networks ``online`` and ``target``, added to ``out``: the
+    pre-activations (into the :class:`Passes` ``h``) over the nonzero inputs of
     ``s = (ptr, col, val)`` and ``nxt`` only, then ``relu`` and the output sums."""
+    w1t, b1, w2, tw1t, tb1, tw2 = online.w1t, online.b1, online.w2, target.w1t, target.b1, target.w2
+    ps, pn, pt = h
     n = j1 - j0
     for jj in range(n):
         ps[jj], pn[jj], pt[jj] = b1[j0 + jj], b1[j0 + jj], tb1[j0 + jj]
@@ -181,11 +197,13 @@ def _sparse_forward(w1t, b1, w2, tw1t, tb1, tw2, s, nxt, i, j0, j1, out, ps, pn,
 
 
 @njit(**_JIT)
-def _sparse_backward(w1t, b1, w2, s, pos, used, acts, delta, lr, zero):
-    """The backward pass and step of the module docstring per hidden unit ``j``, over the
-    nonzero inputs ``s = (ptr, col, val)`` of the ``s_i``: ``p_ij`` again, the unit's
-    gradients (``∂L/∂W_1[j, c]`` for the inputs ``used`` that are nonzero in some ``s_i``,
-    ``pos`` mapping each nonzero to its place in ``used``), then its step."""
+def _sparse_backward(online, s, pos, used, acts, delta, lr, zero):
+    """The backward pass and step of the module docstring per hidden unit ``j`` of the
+    network ``online`` (``W_1``, ``b_1``, ``W_2``), over the nonzero inputs
+    ``s = (ptr, col, val)`` of the ``s_i``: ``p_ij`` again, the unit's gradients
+    (``∂L/∂W_1[j, c]`` for the inputs ``used`` that are nonzero in some ``s_i``, ``pos``
+    mapping each nonzero to its place in ``used``), then its step."""
+    w1t, b1, w2 = online.w1t, online.b1, online.w2
     ptr, col, val = s
     acc = np.empty(used.shape[0], b1.dtype)
     e = np.empty(w2.shape[0], b1.dtype)
@@ -229,64 +247,71 @@ def _inputs_used(col, n_obs):
 
 
 @njit(**_JIT)
-def sparse_step(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, buf_obs, buf_next, buf_actions,
-                buf_rewards, buf_terminated, idx, hyper, block):  # fmt: skip
+def sparse_step(online, target, replay, idx, hyper, block):
     """One member's minibatch step (module docstring) over the nonzero inputs of its
-    minibatch; returns the loss before the step."""
+    minibatch, the transitions ``idx`` of its ``replay``; returns the loss before the
+    step."""
     lr, discount, zero = hyper[0], hyper[1], hyper[2]
+    w1t, b1, w2, b2 = online
     batch, n_act, width = idx.shape[0], w2.shape[0], w1t.shape[1]
-    s, nxt = _nonzeros(buf_obs, idx, b1), _nonzeros(buf_next, idx, b1)
+    s, nxt = _nonzeros(replay.obs, idx, b1), _nonzeros(replay.next_obs, idx, b1)
     acts = np.empty(batch, np.int64)
     q = np.empty((batch, 3, n_act), b1.dtype)
     for i in range(batch):
-        acts[i] = buf_actions[idx[i]]
+        acts[i] = replay.actions[idx[i]]
         for a in range(n_act):
-            q[i, 0, a], q[i, 1, a], q[i, 2, a] = b2[a], b2[a], tb2[a]
-    ps, pn, pt = np.empty(block, b1.dtype), np.empty(block, b1.dtype), np.empty(block, b1.dtype)
+            q[i, 0, a], q[i, 1, a], q[i, 2, a] = b2[a], b2[a], target.b2[a]
+    h = Passes(np.empty(block, b1.dtype), np.empty(block, b1.dtype), np.empty(block, b1.dtype))
     for j0 in range(0, width, block):
         j1 = min(j0 + block, width)
         for i in range(batch):
-            _sparse_forward(w1t, b1, w2, tw1t, tb1, tw2, s, nxt, i, j0, j1, q[i], ps, pn, pt,
-                            zero)  # fmt: skip
+            _sparse_forward(online, target, s, nxt, i, j0, j1, q[i], h, zero)
     delta = np.empty(batch, b1.dtype)
     gb2 = np.zeros(n_act, b1.dtype)
-    loss = td_errors(q, acts, idx, buf_rewards, buf_terminated, discount, delta, gb2)
+    loss = td_errors(q, acts, idx, replay, discount, delta, gb2)
     pos, used = _inputs_used(s[1], w1t.shape[0])
-    _sparse_backward(w1t, b1, w2, s, pos, used, acts, delta, lr, zero)
+    _sparse_backward(online, s, pos, used, acts, delta, lr, zero)
     for a in range(n_act):
         b2[a] += lr * gb2[a]
     return loss
 
 
 @njit(**_JIT)
-def sparse_learn(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, buf_obs, buf_next, buf_actions,
-                 buf_rewards, buf_terminated, idx, members, hyper, block, last_loss):  # fmt: skip
+def sparse_learn(online, target, replay, idx, members, hyper, block, last_loss):
     """:func:`sparse_step` of each member ``k`` with ``members[k]`` (the generated
-    ``learn``'s interface)."""
+    ``learn``'s interface: :func:`learn`'s, the bundles as plain tuples)."""
+    net, tgt, buf = Params(*online), Params(*target), Replay(*replay)
     for k in range(members.shape[0]):
         if members[k]:
-            last_loss[k] = sparse_step(
-                w1t[k], b1[k], w2[k], b2[k], tw1t[k], tb1[k], tw2[k], tb2[k], buf_obs[k],
-                buf_next[k], buf_actions[k], buf_rewards[k], buf_terminated[k], idx[k], hyper,
-                block,
-            )  # fmt: skip
+            last_loss[k] = sparse_step(member_params(net, k), member_params(tgt, k),
+                                       member_replay(buf, k), idx[k], hyper, block)  # fmt: skip
 
 
-def learn(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, buf_obs, buf_next, buf_actions, buf_rewards,
-          buf_terminated, idx, members, hyper, block, last_loss):  # fmt: skip
-    """One minibatch step of each member ``k`` with ``members[k]``: through
+def learn(
+    online: Params,
+    target: Params,
+    replay: Replay,
+    idx: np.ndarray,
+    members: np.ndarray,
+    hyper: np.ndarray,
+    block: int,
+    last_loss: np.ndarray,
+) -> None:
+    """One minibatch step of each member ``k`` with ``members[k]`` of the stacked networks
+    ``online`` (their targets ``target``), on the transitions ``idx[k]`` of its buffer in
+    ``replay``; its loss before the step into ``last_loss[k]``.  Through
     :func:`sparse_learn` where the minibatch's zeros make it the cheaper route
     (:func:`sparse_members`), else through the kernel written out for the shape
-    (:func:`kernels`)."""
-    args = (w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, buf_obs, buf_next, buf_actions, buf_rewards,
-            buf_terminated, idx)  # fmt: skip
+    (:func:`kernels`); both take the bundles as plain tuples (:mod:`cdqn.network`,
+    bundles)."""
+    args = (tuple(online), tuple(target), tuple(replay), idx)
     sparse = np.empty_like(members)
-    if sparse_members(buf_obs, buf_next, idx, members, w2.shape[1], sparse):
+    if sparse_members(replay.obs, replay.next_obs, idx, members, online.w2.shape[1], sparse):
         sparse_learn(*args, sparse, hyper, block, last_loss)
         members = members & ~sparse
         if not members.any():
             return
-    kernels(w1t.shape[1], w2.shape[1]).learn(*args, members, hyper, block, last_loss)
+    kernels(online.w1t.shape[1], online.w2.shape[1]).learn(*args, members, hyper, block, last_loss)
 
 
 _TEMPLATE = """
@@ -294,12 +319,14 @@ import numpy as np
 from numba import njit
 
 from cdqn.ddqn_kernels import td_errors
+from cdqn.network import Params, Replay, member_params, member_replay
 
 _JIT = {{"cache": True, "fastmath": {{"reassoc", "contract"}}}}
 
 
 @njit(**_JIT)
-def forward(w1t, b1, w2, tw1t, tb1, tw2, s, s2, j0, j1, q, zero):
+def forward(online, target, s, s2, j0, j1, q, zero):
+    w1t, b1, w2, tw1t, tb1, tw2 = online.w1t, online.b1, online.w2, target.w1t, target.b1, target.w2
     b, tb = b1[j0:j1], tb1[j0:j1]
     {fw_rows}
     i = 0
@@ -320,9 +347,10 @@ def forward(w1t, b1, w2, tw1t, tb1, tw2, s, s2, j0, j1, q, zero):
 {backward}
 
 @njit(**_JIT)
-def step(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, buf_obs, buf_next, buf_actions, buf_rewards,
-         buf_terminated, idx, hyper, block):
+def step(online, target, replay, idx, hyper, block):
     lr, discount, zero = hyper[0], hyper[1], hyper[2]
+    w1t, b1, w2, b2 = online
+    buf_obs, buf_next, buf_actions, tb2 = replay.obs, replay.next_obs, replay.actions, target.b2
     batch, n_obs, n_act, width = idx.shape[0], w1t.shape[0], w2.shape[0], w1t.shape[1]
     s = np.empty((batch, n_obs), b1.dtype)
     s2 = np.empty((batch, n_obs), b1.dtype)
@@ -338,29 +366,29 @@ def step(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, buf_obs, buf_next, buf_actions, b
             q[i, 0, a], q[i, 1, a], q[i, 2, a] = b2[a], b2[a], tb2[a]
     for j0 in range(0, width, block):
         j1 = min(j0 + block, width)
-        forward(w1t, b1, w2, tw1t, tb1, tw2, s, s2, j0, j1, q, zero)
+        forward(online, target, s, s2, j0, j1, q, zero)
     delta = np.empty(batch, b1.dtype)
     gb2 = np.zeros(n_act, b1.dtype)
-    loss = td_errors(q, acts, idx, buf_rewards, buf_terminated, discount, delta, gb2)
-    backward(w1t, b1, w2, s, acts, delta, lr, zero, block)
+    loss = td_errors(q, acts, idx, replay, discount, delta, gb2)
+    backward(online, s, acts, delta, lr, zero, block)
     for a in range(n_act):
         b2[a] += lr * gb2[a]
     return loss
 
 
 @njit(**_JIT)
-def learn(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, buf_obs, buf_next, buf_actions, buf_rewards,
-          buf_terminated, idx, members, hyper, block, last_loss):
+def learn(online, target, replay, idx, members, hyper, block, last_loss):
+    net, tgt, buf = Params(*online), Params(*target), Replay(*replay)
     for k in range(members.shape[0]):
         if members[k]:
-            last_loss[k] = step(w1t[k], b1[k], w2[k], b2[k], tw1t[k], tb1[k], tw2[k], tb2[k],
-                                buf_obs[k], buf_next[k], buf_actions[k], buf_rewards[k],
-                                buf_terminated[k], idx[k], hyper, block)
+            last_loss[k] = step(member_params(net, k), member_params(tgt, k),
+                                member_replay(buf, k), idx[k], hyper, block)
 """
 
 _UNIT_PASS = """
 @njit(**_JIT)
-def {name}(w1t, b1, w2, s, acts, delta, i, j0, j1, acc, zero):
+def {name}(online, s, acts, delta, i, j0, j1, acc, zero):
+    w1t, b1, w2 = online.w1t, online.b1, online.w2
     {rows}
     {scalars}
     for jj in range(j1 - j0):
@@ -373,7 +401,8 @@ samples) and ``single`` (one)."""
 
 _BACKWARD_UNITS = """
 @njit(**_JIT)
-def backward(w1t, b1, w2, s, acts, delta, lr, zero, block):
+def backward(online, s, acts, delta, lr, zero, block):
+    w1t, b1, w2 = online.w1t, online.b1, online.w2
     batch, width = acts.shape[0], w1t.shape[1]
     acc = np.empty(({n_acc}, block), b1.dtype)
     for j0 in range(0, width, block):
@@ -381,10 +410,10 @@ def backward(w1t, b1, w2, s, acts, delta, lr, zero, block):
         acc[:, : j1 - j0] = zero
         i = 0
         while i + {chunk} <= batch:
-            chunk(w1t, b1, w2, s, acts, delta, i, j0, j1, acc, zero)
+            chunk(online, s, acts, delta, i, j0, j1, acc, zero)
             i += {chunk}
         while i < batch:
-            single(w1t, b1, w2, s, acts, delta, i, j0, j1, acc, zero)
+            single(online, s, acts, delta, i, j0, j1, acc, zero)
             i += 1
         for jj in range(j1 - j0):
             j = j0 + jj
@@ -393,7 +422,8 @@ def backward(w1t, b1, w2, s, acts, delta, lr, zero, block):
 
 _BACKWARD_SAMPLES = """
 @njit(**_JIT)
-def backward(w1t, b1, w2, s, acts, delta, lr, zero, block):
+def backward(online, s, acts, delta, lr, zero, block):
+    w1t, b1, w2 = online.w1t, online.b1, online.w2
     xs = np.empty((s.shape[1], s.shape[0]), b1.dtype)
     for i in range(s.shape[0]):
         for k in range(s.shape[1]):

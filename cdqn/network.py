@@ -40,6 +40,16 @@ of ``W_1ᵀ`` instead of 500, a dense one (CartPole) every row as before.  While
 parameters are finite this changes no bit: ``p_j + W_1ᵀ[i, j]·0 = p_j`` and
 ``W_1ᵀ[i, j] + 0·g_j = W_1ᵀ[i, j]``, and the sums over the other inputs keep their order.
 Double DQN's minibatch step does the same per minibatch (:mod:`cdqn.ddqn_kernels`).
+
+**Bundles.**  The kernels take their arrays in small NamedTuples: a network's parameters
+(:class:`Params`), a forward pass (:class:`Forward`, :class:`StackedForward`), a deferred
+``W_1`` update (:class:`Pending`, :class:`StackedPending`); the agents add theirs.  A
+NamedTuple is a tuple: compiled code reads its fields by name from the same arrays, so the
+memory and the arithmetic are those of the arrays passed one by one.  The kernels called
+from Python take their bundles as plain tuples (``tuple(bundle)``, fields in the bundle's
+order) and name them on entry (``Params(*net)``): numba types a plain tuple argument in C,
+a NamedTuple in Python, which costs about 2 µs per bundle and call, a tenth of a
+population member's step.
 """
 
 from __future__ import annotations
@@ -114,6 +124,17 @@ def ntk_autograd(net: QNetwork, x: torch.Tensor, a: int, y: torch.Tensor, b: int
     return float(sum(torch.sum(gx[k] * gy[k]) for k in params))
 
 
+class Params(NamedTuple):
+    """A network's parameters as the kernels take them: ``w1t`` (``W_1^⊤``, ``(n_obs, width)``),
+    ``b1`` ``(width,)``, ``w2`` ``(n_actions, width)``, ``b2`` ``(n_actions,)`` of one
+    member, or of a stack with a leading member axis."""
+
+    w1t: np.ndarray
+    b1: np.ndarray
+    w2: np.ndarray
+    b2: np.ndarray
+
+
 class Forward(NamedTuple):
     """Cached forward pass at one input: input, pre-activation ``p`` and Q-values
     (the activation ``relu(p)`` is recomputed where it is needed)."""
@@ -130,6 +151,24 @@ class StackedForward(NamedTuple):
     x: np.ndarray
     p: np.ndarray
     q: np.ndarray
+
+
+class Pending(NamedTuple):
+    """One member's deferred ``W_1`` update ``W_1ᵀ[i] += sx_i g`` (:func:`sgd_deferred_row`):
+    ``sx = s x`` ``(n_obs,)``, ``g = ∂Q_a/∂b_1`` ``(width,)`` and whether it is still to be
+    applied."""
+
+    sx: np.ndarray
+    g: np.ndarray
+    pending: bool
+
+
+class StackedPending(NamedTuple):
+    """:class:`Pending` of ``K`` members: shapes ``(K, n_obs)``, ``(K, width)``, ``(K,)``."""
+
+    sx: np.ndarray
+    g: np.ndarray
+    pending: np.ndarray
 
 
 class TDTerms(NamedTuple):
@@ -155,14 +194,33 @@ input's row of ``W_1ᵀ`` passes through it."""
 
 
 @njit(**_JIT)
-def forward_row(w1t, b1, w2, b2, x, p, q):
-    """One member: ``p = b_1 + Σ_i x_i W_1ᵀ[i]``, ``q = W_2 relu(p) + b_2``."""
-    forward_pending_row(w1t, b1, w2, b2, x, p, q, x, b1, False)
+def member_params(n, k):
+    """Member ``k``'s :class:`Params` of a stack's."""
+    return Params(n.w1t[k], n.b1[k], n.w2[k], n.b2[k])
 
 
 @njit(**_JIT)
-def forward_pending_row(w1t, b1, w2, b2, x, p, q, sx, g, pending):
-    """:func:`forward_row` with, when ``pending``, the ``W_1`` part of the last SGD step
+def member_pass(f, k):
+    """Member ``k``'s :class:`Forward` of a :class:`StackedForward`."""
+    return Forward(f.x[k], f.p[k], f.q[k])
+
+
+@njit(**_JIT)
+def member_pending(d, k):
+    """Member ``k``'s :class:`Pending` of a :class:`StackedPending`."""
+    return Pending(d.sx[k], d.g[k], d.pending[k])
+
+
+@njit(**_JIT)
+def forward_row(n, f):
+    """One member (:class:`Params` ``n``): ``f.p = b_1 + Σ_i f.x_i W_1ᵀ[i]``,
+    ``f.q = W_2 relu(f.p) + b_2``."""
+    forward_pending_row(n, f, Pending(f.x, n.b1, False))
+
+
+@njit(**_JIT)
+def forward_pending_row(n, f, d):
+    """:func:`forward_row` with, when ``d.pending``, the ``W_1`` part of the last SGD step
     applied on the way (:func:`sgd_deferred_row`): ``W_1ᵀ[i] += sx_i g`` row by row, each
     element updated as :func:`sgd_row` updates it and then multiplied into ``p``, so one
     pass over ``W_1`` does both.  Per hidden unit ``j`` the sum
@@ -170,28 +228,30 @@ def forward_pending_row(w1t, b1, w2, b2, x, p, q, sx, g, pending):
     unblocked, so the blocks change no bit.
 
     Rows with ``x_i = 0`` and ``sx_i = 0`` are not read (module docstring, zero inputs)."""
+    w1t, b1, x, p = n.w1t, n.b1, f.x, f.p
+    sx, g, pending = d
     n_obs, width = w1t.shape
     for j0 in range(0, width, _BLOCK):
-        n = min(j0 + _BLOCK, width) - j0
-        pb, bb = p[j0 : j0 + n], b1[j0 : j0 + n]
-        for jj in range(n):
+        n_j = min(j0 + _BLOCK, width) - j0
+        pb, bb = p[j0 : j0 + n_j], b1[j0 : j0 + n_j]
+        for jj in range(n_j):
             pb[jj] = bb[jj]
         for i in range(n_obs):
-            xi, wi = x[i], w1t[i, j0 : j0 + n]
+            xi, wi = x[i], w1t[i, j0 : j0 + n_j]
             if pending and sx[i] != 0.0:
-                si, gb = sx[i], g[j0 : j0 + n]
+                si, gb = sx[i], g[j0 : j0 + n_j]
                 if xi != 0.0:
-                    for jj in range(n):
+                    for jj in range(n_j):
                         w = wi[jj] + si * gb[jj]
                         wi[jj] = w
                         pb[jj] += w * xi
                 else:
-                    for jj in range(n):
+                    for jj in range(n_j):
                         wi[jj] = wi[jj] + si * gb[jj]
             elif xi != 0.0:
-                for jj in range(n):
+                for jj in range(n_j):
                     pb[jj] += wi[jj] * xi
-    output_row(w2, b2, p, q)
+    output_row(n.w2, n.b2, p, f.q)
 
 
 @njit(**_JIT)
@@ -217,10 +277,11 @@ def output_row(w2, b2, p, q):
 
 
 @njit(**_JIT)
-def td_row(w2, x1, p1, x2, p2, a, b, g):
-    """One member: ``g = W_2[a] ⊙ [p1 > 0]`` (written into ``g``) and (Θ1, Θ2) of the module
-    docstring with ``h = relu(p1)``, ``h' = relu(p2)``; ``Θ2``'s hidden-layer sum is
-    ``Σ_j g_j W_2[b, j] [p2_j > 0]``."""
+def td_row(w2, f1, f2, a, b, g):
+    """One member, passes ``f1`` at ``x1`` and ``f2`` at ``x2``: ``g = W_2[a] ⊙ [p1 > 0]``
+    (written into ``g``) and (Θ1, Θ2) of the module docstring with ``h = relu(p1)``,
+    ``h' = relu(p2)``; ``Θ2``'s hidden-layer sum is ``Σ_j g_j W_2[b, j] [p2_j > 0]``."""
+    x1, p1, x2, p2 = f1.x, f1.p, f2.x, f2.p
     hh = h12 = gg = gg2 = 0.0
     for j in range(w2.shape[1]):
         h1j, h2j = max(p1[j], 0.0), max(p2[j], 0.0)
@@ -240,12 +301,15 @@ def td_row(w2, x1, p1, x2, p2, a, b, g):
 
 
 @njit(**_JIT)
-def sgd_row(w1t, b1, w2, b2, x, p, a, s, g, x2, p2, p_next, q_next):
+def sgd_row(n, f, a, s, g, f2, nxt):
     """One member, in place: ``W_2[a] += s relu(p)``, ``b_2[a] += s``, ``W_1ᵀ[i] += (s x_i) g``,
-    ``b_1 += s g`` with ``g = ∂Q_a/∂b_1`` at ``x``; then the forward pass at ``x2`` with the
-    new parameters from the one with the old parameters (``p2``):
-    ``p' = p2 + s (x·x2 + 1) g`` (exact in real arithmetic), ``q' = W_2 relu(p') + b_2``.
-    ``p_next`` may be ``p`` or ``p2`` (each is read before it is written)."""
+    ``b_1 += s g`` with ``g = ∂Q_a/∂b_1`` at ``x`` (the pass ``f``); then the forward pass
+    at ``x2`` with the new parameters from the one with the old parameters (``f2``) into
+    ``nxt.p, nxt.q``: ``p' = p2 + s (x·x2 + 1) g`` (exact in real arithmetic),
+    ``q' = W_2 relu(p') + b_2``.  ``nxt.p`` may be ``f.p`` or ``f2.p`` (each is read before
+    it is written)."""
+    w1t, b1, w2, b2 = n
+    x, p, x2, p2, p_next = f.x, f.p, f2.x, f2.p, nxt.p
     n_obs, width = w1t.shape
     for j in range(width):
         w2[a, j] += s * max(p[j], 0.0)
@@ -262,7 +326,7 @@ def sgd_row(w1t, b1, w2, b2, x, p, a, s, g, x2, p2, p_next, q_next):
     c = s * (xx2 + 1.0)
     for j in range(width):
         p_next[j] = p2[j] + c * g[j]
-    output_row(w2, b2, p_next, q_next)
+    output_row(w2, b2, p_next, nxt.q)
 
 
 @njit(cache=True, fastmath={"contract"})
@@ -276,40 +340,51 @@ def _dot_in_order(x, y):
 
 
 @njit(**_JIT)
-def sgd_deferred_row(b1, w2, b2, x, p, a, s, g, x2, p2, p_next, q_next, sx):
-    """:func:`sgd_row` except for ``W_1``: its update ``W_1ᵀ[i] += sx_i g`` is left pending
-    (``sx = s x`` written, ``g`` kept) for :func:`forward_pending_row` or
-    :func:`apply_pending_row`; the forward pass at ``x2`` with the new parameters does not
-    read ``W_1``."""
+def sgd_deferred_row(n, f, a, s, f2, nxt, d):
+    """:func:`sgd_row` with ``g = d.g`` except for ``W_1``: its update ``W_1ᵀ[i] += sx_i g``
+    is left pending (``d.sx = s x`` written; the caller marks it pending) for
+    :func:`forward_pending_row` or :func:`apply_pending_row`; the forward pass at ``x2``
+    with the new parameters does not read ``W_1``."""
+    b1, w2, b2, x, p, g, p_next = n.b1, n.w2, n.b2, f.x, f.p, d.g, nxt.p
     b2[a] += s
     for i in range(x.shape[0]):
-        sx[i] = s * x[i]
-    c = s * (_dot_in_order(x, x2) + 1.0)
-    wa = w2[a]
+        d.sx[i] = s * x[i]
+    c = s * (_dot_in_order(x, f2.x) + 1.0)
+    wa, p2 = w2[a], f2.p
     for j in range(b1.shape[0]):  # one pass; each element's operations as sgd_row's
         wa[j] += s * max(p[j], 0.0)
         b1[j] += s * g[j]
         p_next[j] = p2[j] + c * g[j]
-    output_row(w2, b2, p_next, q_next)
+    output_row(w2, b2, p_next, nxt.q)
 
 
 @njit(**_JIT)
-def _forward_kernel(w1t, b1, w2, b2, x, rows, p, q):
+def _forward_kernel(net, passes, rows):
+    """:func:`forward_row` of the members ``rows`` (bundles as plain tuples: module
+    docstring)."""
+    n, f = Params(*net), StackedForward(*passes)
     for k in rows:
-        forward_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], q[k])
+        forward_row(member_params(n, k), member_pass(f, k))
 
 
 @njit(**_JIT)
-def _td_kernel(w2, x1, p1, x2, p2, a, b, g, theta):
+def _td_kernel(w2, passes1, passes2, a, b, g, theta):
+    """:func:`td_row` of every member into ``g[k]`` and ``theta[k]``."""
+    f1, f2 = StackedForward(*passes1), StackedForward(*passes2)
     for k in range(w2.shape[0]):
-        theta[k, 0], theta[k, 1] = td_row(w2[k], x1[k], p1[k], x2[k], p2[k], a[k], b[k], g[k])
+        theta[k, 0], theta[k, 1] = td_row(w2[k], member_pass(f1, k), member_pass(f2, k), a[k],
+                                          b[k], g[k])  # fmt: skip
 
 
 @njit(**_JIT)
-def _sgd_kernel(w1t, b1, w2, b2, x, p, a, scale, g, x2, p2, p_next, q_next):
-    for k in range(w1t.shape[0]):
-        sgd_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], a[k], scale[k], g[k], x2[k], p2[k],
-                p_next[k], q_next[k])  # fmt: skip
+def _sgd_kernel(net, passes, a, scale, g, passes2, out):
+    """:func:`sgd_row` of every member, the pass at ``x2`` with the new parameters into
+    ``out``."""
+    n, f = Params(*net), StackedForward(*passes)
+    f2, nxt = StackedForward(*passes2), StackedForward(*out)
+    for k in range(n.w1t.shape[0]):
+        sgd_row(member_params(n, k), member_pass(f, k), a[k], scale[k], g[k],
+                member_pass(f2, k), member_pass(nxt, k))  # fmt: skip
 
 
 class StackedTwoLayer:
@@ -324,6 +399,8 @@ class StackedTwoLayer:
 
     def __init__(self, w1t: np.ndarray, b1: np.ndarray, w2: np.ndarray, b2: np.ndarray) -> None:
         self.w1t, self.b1, self.w2, self.b2 = w1t, b1, w2, b2
+        self.params = Params(w1t, b1, w2, b2)
+        """The same arrays as the kernels take them."""
         self.dtype = w1t.dtype
         self.rows = np.arange(len(w1t))
 
@@ -344,6 +421,7 @@ class StackedTwoLayer:
         """Keep only the members ``keep`` (indices or mask), in that order."""
         self.w1t, self.b1 = self.w1t[keep], self.b1[keep]
         self.w2, self.b2 = self.w2[keep], self.b2[keep]
+        self.params = Params(self.w1t, self.b1, self.w2, self.b2)
         self.rows = np.arange(len(self.w1t))
 
     def copy_to(self, k: int, net: QNetwork) -> None:
@@ -369,7 +447,7 @@ class StackedTwoLayer:
             if not len(rows):
                 return reuse
             p, q = reuse.p, reuse.q  # rows of ``reuse`` that changed: in place
-        _forward_kernel(self.w1t, self.b1, self.w2, self.b2, x, rows, p, q)
+        _forward_kernel(tuple(self.params), (x, p, q), rows)
         return StackedForward(x, p, q)
 
     def td_terms(
@@ -378,7 +456,7 @@ class StackedTwoLayer:
         """Θ1 = Θ((x1,a),(x1,a)), Θ2 = Θ((x1,a),(x2,b)) and ``∂Q_a/∂b_1`` (module docstring)."""
         g = np.empty_like(f1.p)
         theta = np.empty((len(g), 2), self.dtype)
-        _td_kernel(self.w2, f1.x, f1.p, f2.x, f2.p, _int(a), _int(b), g, theta)
+        _td_kernel(self.w2, tuple(f1), tuple(f2), _int(a), _int(b), g, theta)
         return TDTerms(theta[:, 0], theta[:, 1], g)
 
     def ntk(
@@ -405,8 +483,8 @@ class StackedTwoLayer:
         parameters, updated from ``f2`` (the pass at s' the step was computed with)."""
         scale = np.ascontiguousarray(scale, dtype=self.dtype)
         p, q = np.empty_like(f2.p), np.empty_like(f2.q)
-        _sgd_kernel(self.w1t, self.b1, self.w2, self.b2, f.x, f.p, _int(a), scale, grad_b1,
-                    f2.x, f2.p, p, q)  # fmt: skip
+        _sgd_kernel(tuple(self.params), tuple(f), _int(a), scale, grad_b1, tuple(f2),
+                    (f2.x, p, q))  # fmt: skip
         return StackedForward(f2.x, p, q)
 
 
@@ -420,6 +498,12 @@ class Replay(NamedTuple):
     actions: np.ndarray
     rewards: np.ndarray
     terminated: np.ndarray
+
+
+@njit(**_JIT)
+def member_replay(r, k):
+    """Member ``k``'s buffer of a :class:`Replay`."""
+    return Replay(r.obs[k], r.next_obs[k], r.actions[k], r.rewards[k], r.terminated[k])
 
 
 def step_settings_array(lr: float, discount: float, dtype: np.dtype) -> np.ndarray:
@@ -451,10 +535,7 @@ def double_dqn_learn(
     from cdqn.ddqn_kernels import BLOCK  # Double DQN's alone
     from cdqn.ddqn_kernels import learn as minibatch_learn
 
-    minibatch_learn(
-        online.w1t, online.b1, online.w2, online.b2, target.w1t, target.b1, target.w2,
-        target.b2, *replay, idx, members, hyper, BLOCK, last_loss,
-    )  # fmt: skip
+    minibatch_learn(online.params, target.params, replay, idx, members, hyper, BLOCK, last_loss)
 
 
 def double_dqn_step(

@@ -12,6 +12,9 @@ from cdqn.config import EnvConfig
 from cdqn.envs import make_env
 from cdqn.network import (
     _JIT,
+    Forward,
+    Params,
+    Pending,
     apply_pending_row,
     forward_pending_row,
     forward_row,
@@ -49,26 +52,28 @@ def test_deferred_step_equals_the_immediate_step_bit_for_bit(
         ]
         x, x2, x3 = (gen.normal(size=n_obs) for _ in range(3))
         p, q = np.empty(width), np.empty(n_actions)
-        forward_row(*params, x, p, q)
+        forward_row(Params(*params), Forward(x, p, q))
         p_ref, q_ref = np.empty(width), np.empty(n_actions)
         _unblocked_forward(*params, x, p_ref, q_ref)
         assert np.array_equal(p, p_ref) and np.array_equal(q, q_ref)
         p2, q2 = np.empty(width), np.empty(n_actions)
-        forward_row(*params, x2, p2, q2)
+        forward_row(Params(*params), Forward(x2, p2, q2))
         g, s = np.where(p > 0.0, params[2][1], 0.0), gen.normal() * 1e-3
         immediate, deferred = [a.copy() for a in params], [a.copy() for a in params]
         p_i, q_i = np.empty(width), np.empty(n_actions)
         p_d, q_d = np.empty(width), np.empty(n_actions)
-        sgd_row(*immediate, x, p, 1, s, g, x2, p2, p_i, q_i)
+        sgd_row(Params(*immediate), Forward(x, p, q), 1, s, g, Forward(x2, p2, q2),
+                Forward(x2, p_i, q_i))  # fmt: skip
         sx = np.empty(n_obs)
-        sgd_deferred_row(*deferred[1:], x, p, 1, s, g, x2, p2, p_d, q_d, sx)
+        sgd_deferred_row(Params(*deferred), Forward(x, p, q), 1, s, Forward(x2, p2, q2),
+                         Forward(x2, p_d, q_d), Pending(sx, g, False))  # fmt: skip
         assert np.array_equal(p_i, p_d) and np.array_equal(q_i, q_d)
         applied = [a.copy() for a in deferred]
         apply_pending_row(applied[0], sx, g)
         p3, q3 = np.empty(width), np.empty(n_actions)
         p4, q4 = np.empty(width), np.empty(n_actions)
-        forward_row(*immediate, x3, p3, q3)
-        forward_pending_row(*deferred, x3, p4, q4, sx, g, True)
+        forward_row(Params(*immediate), Forward(x3, p3, q3))
+        forward_pending_row(Params(*deferred), Forward(x3, p4, q4), Pending(sx, g, True))
         assert np.array_equal(p3, p4) and np.array_equal(q3, q4)
         for a, b, c in zip(immediate, deferred, applied, strict=True):
             assert np.array_equal(a, b) and np.array_equal(a, c)

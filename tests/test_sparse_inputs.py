@@ -17,8 +17,12 @@ from cdqn.envs import make_env
 from cdqn.network import (
     _JIT,
     FastTwoLayer,
+    Forward,
     NetworkSpec,
+    Params,
+    Pending,
     QNetwork,
+    Replay,
     apply_pending_row,
     forward_pending_row,
     ntk_autograd,
@@ -92,7 +96,8 @@ def test_row_kernels_equal_the_dense_products_bit_for_bit(
             w_fast, w_ref = w1t.copy(), w1t.copy()
             p, q = np.empty(width, dtype), np.empty(3, dtype)
             p_ref, q_ref = np.empty(width, dtype), np.empty(3, dtype)
-            forward_pending_row(w_fast, b1, w2, b2, x, p, q, sx, g, pending)
+            forward_pending_row(Params(w_fast, b1, w2, b2), Forward(x, p, q),
+                                Pending(sx, g, pending))  # fmt: skip
             _dense_forward_pending(w_ref, b1, w2, b2, x, p_ref, q_ref, sx, g, pending)
             assert np.array_equal(p, p_ref) and np.array_equal(q, q_ref)
             assert np.array_equal(w_fast, w_ref)
@@ -104,8 +109,9 @@ def test_row_kernels_equal_the_dense_products_bit_for_bit(
 
         fast, ref = [a.copy() for a in (w1t, b1, w2, b2)], [a.copy() for a in (w1t, b1, w2, b2)]
         f = np.empty(width, dtype), np.empty(3, dtype)
-        forward_pending_row(*fast, x_prev, *f, sx, g, False)
-        sgd_row(*fast, x_prev, f[0], 1, s, g, x, p, np.empty(width, dtype), np.empty(3, dtype))
+        forward_pending_row(Params(*fast), Forward(x_prev, *f), Pending(sx, g, False))
+        sgd_row(Params(*fast), Forward(x_prev, *f), 1, s, g, Forward(x, p, q),
+                Forward(x, np.empty(width, dtype), np.empty(3, dtype)))  # fmt: skip
         _dense_w1_step(ref[0], x_prev, s, g)
         assert np.array_equal(fast[0], ref[0])
 
@@ -200,7 +206,8 @@ def test_sparse_and_unrolled_minibatch_kernels_take_the_same_step(dtype: type) -
     results = []
     for learn in (sparse_learn, kernels(n, m).learn):
         p, loss = [a.copy() for a in params], np.empty(2)
-        learn(*p, *target, obs, nxt, *buf, idx, member, hyper, BLOCK, loss)
+        learn(Params(*p), Params(*target), Replay(obs, nxt, *buf), idx, member, hyper, BLOCK,
+              loss)  # fmt: skip
         results.append((p, loss[0]))
     (p_sparse, l_sparse), (p_dense, l_dense) = results
     rtol = 1e-12 if dtype == np.float64 else 2e-5

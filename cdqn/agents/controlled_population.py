@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit
@@ -47,10 +47,17 @@ from cdqn.control.runtime import (
     StaticGain,
 )
 from cdqn.network import (
+    Forward,
+    Params,
     QNetwork,
+    StackedForward,
+    StackedPending,
     StackedTwoLayer,
     apply_pending_row,
     forward_pending_row,
+    member_params,
+    member_pass,
+    member_pending,
     sgd_deferred_row,
     td_row,
 )
@@ -62,6 +69,58 @@ DONE, CHECK = 1, 2
 cheap divergence test."""
 _KINDS = {NoControl: NO_CONTROL, StaticGain: STATIC_GAIN, StateSpace: STATE_SPACE,
           ScheduledLQR: SCHEDULED_LQR}  # fmt: skip
+
+
+class StepScratch(NamedTuple):
+    """One member's step at a time (kept small so that it stays in cache): the pass at s'
+    (``x``, ``p``, ``q``) and Θ1, Θ2 and α δ rounded to the network's dtype, as the single
+    run's arrays hold them (``values``)."""
+
+    x: np.ndarray
+    p: np.ndarray
+    q: np.ndarray
+    values: np.ndarray
+
+
+class StepSettings(NamedTuple):
+    """The controlled step's constants: α = Δt (``lr``), γ (``discount``) and whether a
+    terminal step bootstraps."""
+
+    lr: float
+    discount: float
+    bootstrap_terminal: bool
+
+
+class StepLog(NamedTuple):
+    """What a population's step writes for the loop, per member: episode ``ep`` ``(K,)``,
+    step ``t`` (counted), return ``ret`` (the reward added), the signal ``rows`` ``(K, 10)``,
+    :data:`DONE` / :data:`CHECK` ``flags`` and ``loss_seen``."""
+
+    ep: np.ndarray
+    t: np.ndarray
+    ret: np.ndarray
+    rows: np.ndarray
+    flags: np.ndarray
+    loss_seen: np.ndarray
+
+
+class ControllerView(NamedTuple):
+    """A :class:`ControllerArrays` as the kernels take it (its arrays, not copies); ``x``
+    is the controller state ``x_c``."""
+
+    kind: int
+    gains: np.ndarray
+    loss_weight: np.ndarray
+    Ad: np.ndarray
+    Bd: np.ndarray
+    C: np.ndarray
+    D: np.ndarray
+    x: np.ndarray
+    w_x: np.ndarray
+    w_c: float
+    research: bool
+    target: np.ndarray
+    unsolved: np.ndarray
 
 
 def batchable_controller(controller: RuntimeController) -> bool:
@@ -118,6 +177,13 @@ class ControllerArrays:
             kind, gains, np.full(k, float(controller.loss_weight)), Ad, Bd, C, D,
             np.zeros((k, n)), w_x, w_c, research, reset_state, np.zeros(k, dtype=np.int64),
             target,
+        )  # fmt: skip
+
+    def view(self) -> ControllerView:
+        """The arrays the kernels step."""
+        return ControllerView(
+            self.kind, self.gains, self.loss_weight, self.Ad, self.Bd, self.C, self.D, self.x,
+            self.w_x, self.w_c, self.research, self.target, self.unsolved,
         )  # fmt: skip
 
     def reset(self, i: int) -> None:
@@ -263,8 +329,9 @@ class ControlledPopulation:
         k, dtype = len(nets), self.net.dtype
         self.controller = ControllerArrays.of(controller, k)
         self.explore = ExplorationPlan(cfg, spec.n_actions, rngs)
-        self.hyper = np.array([cfg.lr, cfg.discount])
-        self.bootstrap_terminal = bool(cfg.bootstrap_terminal)
+        self.settings = StepSettings(
+            float(cfg.lr), float(cfg.discount), bool(cfg.bootstrap_terminal)
+        )
         self.reset_integrator = reset_integrator
         self.x_e = np.zeros(k)
         # Each member's forward pass at s with its current parameters: input (NaN: none
@@ -272,10 +339,7 @@ class ControlledPopulation:
         self.x = np.full((k, spec.n_obs), np.nan, dtype)
         self.p = np.empty((k, spec.width), dtype)
         self.q = np.empty((k, spec.n_actions), dtype)
-        # One member's step at a time: the pass at s' (kept small so that it stays in
-        # cache); Θ1, Θ2 and α δ rounded to the network's dtype, as the single run's arrays
-        # hold them.
-        self.scratch = (
+        self.scratch = StepScratch(
             np.empty(spec.n_obs, dtype),
             np.empty(spec.width, dtype),
             np.empty(spec.n_actions, dtype),
@@ -306,14 +370,23 @@ class ControlledPopulation:
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         """ε-greedy actions ``(K,)`` (the array is reused by the next call)."""
-        n = self.net
-        _act_kernel(n.w1t, n.b1, n.w2, n.b2, obs, self.x, self.p, self.q, self.sx, self.g,
-                    self.pending, self.explore.next(), self.actions)  # fmt: skip
+        _act_kernel(tuple(self.net.params), tuple(self.passes), tuple(self.deferred), obs,
+                    self.explore.next(), self.actions)  # fmt: skip
         return self.actions
+
+    @property
+    def passes(self) -> StackedForward:
+        """Each member's forward pass at ``s`` with its current parameters."""
+        return StackedForward(self.x, self.p, self.q)
+
+    @property
+    def deferred(self) -> StackedPending:
+        """Each member's pending ``W_1`` update (module docstring)."""
+        return StackedPending(self.sx, self.g, self.pending)
 
     def flush(self) -> None:
         """Apply every member's pending ``W_1`` update (module docstring)."""
-        _flush_kernel(self.net.w1t, self.sx, self.g, self.pending)
+        _flush_kernel(self.net.w1t, tuple(self.deferred))
 
     def update(
         self,
@@ -335,27 +408,25 @@ class ControlledPopulation:
         the end of an episode, 0 otherwise; :attr:`loss_seen` records that a member has had a
         step that passed.  Returns the number of flagged members.
         """
-        n, c = self.net, self.controller
+        log = StepLog(ep, t, ret, rows, self.flags, self.loss_seen)
         return _update_kernel(
-            n.w1t, n.b1, n.w2, n.b2, self.x, self.p, self.q, *self.scratch, self.sx, self.g,
-            self.pending, actions,
-            step.reward, step.obs, step.terminated, step.truncated, self.hyper,
-            self.bootstrap_terminal, c.kind, c.gains, c.loss_weight, c.Ad, c.Bd, c.C, c.D, c.x,
-            c.w_x, c.w_c, c.research, c.target, c.unsolved, self.x_e, ep, t, ret, rows, q_limit,
-            self.flags, self.loss_seen,
+            tuple(self.net.params), tuple(self.passes), tuple(self.scratch),
+            tuple(self.deferred), actions, tuple(step), tuple(self.settings),
+            tuple(self.controller.view()), self.x_e, tuple(log), q_limit,
         )  # fmt: skip
 
     def replay(self, k: int, tail: Transitions, repeats: int, q_limit: float) -> int:
         """Episodic replay of member ``k`` (:func:`_replay_kernel`); returns the number of
         updates, negative (−(i + 1)) when update ``i`` failed the divergence test."""
-        n, c = self.net, self.controller
         dtype = self.x.dtype
+        tail = tail._replace(
+            obs=np.ascontiguousarray(tail.obs, dtype=dtype),
+            next_obs=np.ascontiguousarray(tail.next_obs, dtype=dtype),
+        )
         return _replay_kernel(
-            k, n.w1t, n.b1, n.w2, n.b2, self.x, self.p, self.q, *self.scratch, self.sx, self.g,
-            self.pending, np.ascontiguousarray(tail.obs, dtype=dtype), tail.actions, tail.rewards,
-            np.ascontiguousarray(tail.next_obs, dtype=dtype), tail.terminated, repeats,
-            self.hyper, self.bootstrap_terminal, c.kind, c.gains, c.loss_weight, c.Ad, c.Bd, c.C,
-            c.D, c.x, c.w_x, c.w_c, c.research, c.target, c.unsolved, self.x_e, q_limit,
+            k, tuple(self.net.params), tuple(self.passes), tuple(self.scratch),
+            tuple(self.deferred), tuple(tail), repeats, tuple(self.settings),
+            tuple(self.controller.view()), self.x_e, q_limit,
         )  # fmt: skip
 
     def select(self, keep: np.ndarray) -> None:
@@ -404,142 +475,161 @@ class ControlledPopulation:
 
 
 @njit(cache=True)
-def _flush_kernel(w1t, sx, g, pending):
-    for k in range(w1t.shape[0]):
-        if pending[k]:
-            apply_pending_row(w1t[k], sx[k], g[k])
-            pending[k] = False
+def flag_step(log, k, healthy, ended):
+    """The loop's flag of member ``k``'s step into ``log.flags[k]``: :data:`CHECK` unless
+    ``healthy`` (it passed the cheap divergence test), else :data:`DONE` if the episode
+    ``ended``, else 0; a healthy step sets ``log.loss_seen[k]``.  Returns whether it is
+    flagged."""
+    if not healthy:
+        log.flags[k] = CHECK
+    elif ended:
+        log.flags[k] = DONE
+        log.loss_seen[k] = True
+    else:
+        log.flags[k] = 0
+        log.loss_seen[k] = True
+    return log.flags[k] != 0
 
 
 @njit(cache=True)
-def _act_kernel(w1t, b1, w2, b2, obs, x, p, q, sx, g, pending, plan, actions):
+def _flush_kernel(w1t, pending):
+    d = StackedPending(*pending)
+    for k in range(w1t.shape[0]):
+        if d.pending[k]:
+            apply_pending_row(w1t[k], d.sx[k], d.g[k])
+            d.pending[k] = False
+
+
+@njit(cache=True)
+def _act_kernel(net, passes, pending, obs, plan, actions):
     """Per member: the forward pass at ``obs`` (applying a pending ``W_1`` update) unless
     ``x`` already holds it (as :meth:`cdqn.network.StackedTwoLayer.forward` with ``reuse``),
-    then the planned random action or ``argmax Q(obs, ·)``."""
+    then the planned random action or ``argmax Q(obs, ·)``.  Bundles as plain tuples
+    (:mod:`cdqn.network`, bundles)."""
+    n, f, d = Params(*net), StackedForward(*passes), StackedPending(*pending)
     for k in range(obs.shape[0]):
-        _pass_at(k, obs[k], w1t, b1, w2, b2, x, p, q, sx, g, pending)
-        actions[k] = plan[k] if plan[k] >= 0 else np.argmax(q[k])
+        _pass_at(k, obs[k], n, f, d)
+        actions[k] = plan[k] if plan[k] >= 0 else np.argmax(f.q[k])
 
 
 @njit(cache=True)
-def _pass_at(k, obs, w1t, b1, w2, b2, x, p, q, sx, g, pending):
-    """Member ``k``'s forward pass at ``obs`` into ``x[k], p[k], q[k]`` (applying its pending
-    ``W_1`` update), unless ``x[k]`` already holds ``obs``."""
+def _pass_at(k, obs, n, f, d):
+    """Member ``k``'s forward pass at ``obs`` into ``f.x[k], f.p[k], f.q[k]`` (applying its
+    pending ``W_1`` update), unless ``f.x[k]`` already holds ``obs``."""
     same = True
     for i in range(obs.shape[0]):
-        if obs[i] != x[k, i]:
+        if obs[i] != f.x[k, i]:
             same = False
     if not same:
         for i in range(obs.shape[0]):
-            x[k, i] = obs[i]
-        forward_pending_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], q[k], sx[k], g[k],
-                            pending[k])  # fmt: skip
-        pending[k] = False
+            f.x[k, i] = obs[i]
+        forward_pending_row(member_params(n, k), member_pass(f, k), member_pending(d, k))
+        d.pending[k] = False
 
 
 @njit(cache=True)
-def _controlled_step(k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, scratch, sx, g, pending, a,
-                     reward, terminated, alpha, discount, bootstrap_terminal, kind, gains,
-                     loss_weight, Ad, Bd, C, D, xc, w_x, w_c, research, target, unsolved,
-                     x_e):  # fmt: skip
-    """Member ``k``'s controlled step on the transition ``(x[k], a, reward, x2)``, in the order
-    of operations of :meth:`cdqn.agents.ControlledAgent.update`: ``x[k], p[k], q[k]`` hold the
-    pass at ``s``, ``x2`` holds ``s'``; afterwards they hold the pass at ``s'`` with the new
-    parameters, and the step's ``W_1`` update is pending (module docstring).  Returns
-    ``(Q1, Q2, u, x_e, Θ1, Θ2, loss)``."""
-    gk = g[k]
-    forward_pending_row(w1t[k], b1[k], w2[k], b2[k], x2, p2, q2s, sx[k], gk, pending[k])
-    b = np.argmax(q2s)
-    q1, q2 = float(q[k, a]), float(q2s[b])
-    scratch[0], scratch[1] = td_row(w2[k], x[k], p[k], x2, p2, a, b, gk)
-    theta1, theta2 = float(scratch[0]), float(scratch[1])
-    q_next = q2 if (bootstrap_terminal or not terminated) else 0.0
+def _control(k, c, theta1, theta2, discount, xe, q1, q_next):
+    """Member ``k``'s control input ``u = K(x_e, Q1, Q̂2)`` of the controller ``c``
+    (:class:`ControllerView`), stepping its state (:mod:`cdqn.control.kernels`)."""
+    if c.kind == NO_CONTROL:
+        return 0.0
+    if c.kind == STATIC_GAIN:
+        return static_gain_u(c.gains[k, 0], c.gains[k, 1], c.gains[k, 2], xe, q1, q_next)
+    if c.kind == STATE_SPACE:
+        return state_space_step(c.Ad, c.Bd, c.C, c.D, c.x[k], xe, q1, q_next)
+    u, c.loss_weight[k], solved = scheduled_lqr_step(
+        theta1, theta2, discount, c.w_x, c.w_c, c.research, c.target, c.gains[k], xe, q1, q_next
+    )
+    if not solved:
+        c.unsolved[k] += 1
+    return u
 
+
+@njit(cache=True)
+def _controlled_step(k, n, f, s2, d, a, reward, terminated, settings, c, x_e):
+    """Member ``k``'s controlled step on the transition ``(f.x[k], a, reward, s2.x)``, in the
+    order of operations of :meth:`cdqn.agents.ControlledAgent.update`: ``f`` holds the pass
+    at ``s``, ``s2.x`` holds ``s'``; afterwards ``f`` holds the pass at ``s'`` with the new
+    parameters, and the step's ``W_1`` update is pending in ``d`` (module docstring).
+    Returns ``(Q1, Q2, u, x_e, Θ1, Θ2, loss)``."""
+    nk, fk, dk = member_params(n, k), member_pass(f, k), member_pending(d, k)
+    f2, values = Forward(s2.x, s2.p, s2.q), s2.values
+    forward_pending_row(nk, f2, dk)
+    b = np.argmax(f2.q)
+    q1, q2 = float(fk.q[a]), float(f2.q[b])
+    values[0], values[1] = td_row(nk.w2, fk, f2, a, b, dk.g)
+    theta1, theta2 = float(values[0]), float(values[1])
+    q_next = q2 if (settings.bootstrap_terminal or not terminated) else 0.0
+
+    alpha, discount = settings.lr, settings.discount
     error = reward + discount * q_next - q1
     x_e[k] += alpha * error
     xe = x_e[k]
-    if kind == NO_CONTROL:
-        u = 0.0
-    elif kind == STATIC_GAIN:
-        u = static_gain_u(gains[k, 0], gains[k, 1], gains[k, 2], xe, q1, q_next)
-    elif kind == STATE_SPACE:
-        u = state_space_step(Ad, Bd, C, D, xc[k], xe, q1, q_next)
-    else:
-        u, loss_weight[k], solved = scheduled_lqr_step(
-            theta1, theta2, discount, w_x, w_c, research, target, gains[k], xe, q1, q_next
-        )
-        if not solved:
-            unsolved[k] += 1
+    u = _control(k, c, theta1, theta2, discount, xe, q1, q_next)
     delta = error + u
-    loss = 0.5 * loss_weight[k] * delta * delta
-    scratch[2] = alpha * delta
+    loss = 0.5 * c.loss_weight[k] * delta * delta
+    values[2] = alpha * delta
     # the step; the member's pass becomes the one at s' with the new parameters
-    sgd_deferred_row(b1[k], w2[k], b2[k], x[k], p[k], a, scratch[2], gk, x2, p2, p[k], q[k],
-                     sx[k])  # fmt: skip
-    pending[k] = True
-    for i in range(x2.shape[0]):
-        x[k, i] = x2[i]
+    sgd_deferred_row(nk, fk, a, values[2], f2, fk, dk)
+    d.pending[k] = True
+    for i in range(f2.x.shape[0]):
+        f.x[k, i] = f2.x[i]
     return q1, q2, u, xe, theta1, theta2, loss
 
 
 @njit(cache=True)
-def _update_kernel(w1t, b1, w2, b2, x, p, q, x2, p2, q2s, scratch, sx, g, pending, actions,
-                   reward, next_obs, terminated, truncated, hyper, bootstrap_terminal, kind,
-                   gains, loss_weight, Ad, Bd, C, D, xc, w_x, w_c, research, target, unsolved,
-                   x_e, ep, t, ret, rows, q_limit, flags, loss_seen):  # fmt: skip
+def _update_kernel(net, passes, scratch, pending, actions, step, settings, controller, x_e,
+                   log, q_limit):  # fmt: skip
     """:meth:`ControlledPopulation.update` (module docstring), member by member
-    (:func:`_controlled_step`)."""
-    alpha, discount = hyper[0], hyper[1]
+    (:func:`_controlled_step`).  Bundles as plain tuples (:mod:`cdqn.network`, bundles):
+    :class:`~cdqn.network.Params`, :class:`~cdqn.network.StackedForward`,
+    :class:`StepScratch`, :class:`~cdqn.network.StackedPending`,
+    :class:`cdqn.vector_env.VectorStep`, :class:`StepSettings`, :class:`ControllerView`,
+    :class:`StepLog`."""
+    n, f, s2 = Params(*net), StackedForward(*passes), StepScratch(*scratch)
+    d = StackedPending(*pending)
+    st, c, lg = VectorStep(*step), ControllerView(*controller), StepLog(*log)
+    stp = StepSettings(*settings)
     flagged = 0
     for k in range(actions.shape[0]):
-        for i in range(x2.shape[0]):
-            x2[i] = next_obs[k, i]
+        for i in range(s2.x.shape[0]):
+            s2.x[i] = st.obs[k, i]
+        reward = st.reward[k]
         q1, q2, u, xe, theta1, theta2, loss = _controlled_step(
-            k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, scratch, sx, g, pending, actions[k],
-            reward[k], terminated[k], alpha, discount, bootstrap_terminal, kind, gains,
-            loss_weight, Ad, Bd, C, D, xc, w_x, w_c, research, target, unsolved, x_e,
-        )  # fmt: skip
-        row = rows[k]
-        row[0], row[1], row[2], row[3], row[4] = ep[k], t[k], reward[k], q1, q2
+            k, n, f, s2, d, actions[k], reward, st.terminated[k], stp, c, x_e
+        )
+        row = lg.rows[k]
+        row[0], row[1], row[2], row[3], row[4] = lg.ep[k], lg.t[k], reward, q1, q2
         row[5], row[6], row[7], row[8], row[9] = u, xe, theta1, theta2, loss
-        ret[k] += reward[k]
-        t[k] += 1
-        if not (math.isfinite(u + xe + loss) and max(abs(q1), abs(q2)) <= q_limit):
-            flags[k] = CHECK
-        elif terminated[k] or truncated[k]:
-            flags[k] = DONE
-            loss_seen[k] = True
-        else:
-            flags[k] = 0
-            loss_seen[k] = True
-        flagged += flags[k] != 0
+        lg.ret[k] += reward
+        lg.t[k] += 1
+        healthy = math.isfinite(u + xe + loss) and max(abs(q1), abs(q2)) <= q_limit
+        flagged += flag_step(lg, k, healthy, st.terminated[k] or st.truncated[k])
     return flagged
 
 
 @njit(cache=True)
-def _replay_kernel(k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, scratch, sx, g, pending, obs,
-                   actions, rewards, next_obs, terminated, repeats, hyper, bootstrap_terminal,
-                   kind, gains, loss_weight, Ad, Bd, C, D, xc, w_x, w_c, research, target,
-                   unsolved, x_e, q_limit):  # fmt: skip
-    """Episodic replay of member ``k``: ``repeats`` passes over the transitions
-    ``(obs[i], actions[i], rewards[i], next_obs[i], terminated[i])`` in order, each through
-    :func:`_controlled_step` after the forward pass at ``obs[i]`` (reused when the member's
+def _replay_kernel(k, net, passes, scratch, pending, tail, repeats, settings, controller, x_e,
+                   q_limit):  # fmt: skip
+    """Episodic replay of member ``k``: ``repeats`` passes over the transitions ``tail``
+    (:class:`cdqn.agents.episodic_replay.Transitions`) in order, each through
+    :func:`_controlled_step` after the forward pass at its ``obs`` (reused when the member's
     pass already holds it, as :meth:`cdqn.agents.ControlledAgent.update` reuses its cached
     pass).  Returns the number of updates, or ``−(i + 1)`` when update ``i`` failed the
-    divergence test."""
-    alpha, discount = hyper[0], hyper[1]
-    n = 0
+    divergence test.  Bundles as in :func:`_update_kernel`."""
+    n, f, s2 = Params(*net), StackedForward(*passes), StepScratch(*scratch)
+    d, tr, c = StackedPending(*pending), Transitions(*tail), ControllerView(*controller)
+    stp = StepSettings(*settings)
+    count = 0
     for _ in range(repeats):
-        for j in range(obs.shape[0]):
-            _pass_at(k, obs[j], w1t, b1, w2, b2, x, p, q, sx, g, pending)
-            for i in range(x2.shape[0]):
-                x2[i] = next_obs[j, i]
+        for j in range(tr.obs.shape[0]):
+            _pass_at(k, tr.obs[j], n, f, d)
+            for i in range(s2.x.shape[0]):
+                s2.x[i] = tr.next_obs[j, i]
             q1, q2, u, xe, theta1, theta2, loss = _controlled_step(
-                k, w1t, b1, w2, b2, x, p, q, x2, p2, q2s, scratch, sx, g, pending, actions[j],
-                rewards[j], terminated[j], alpha, discount, bootstrap_terminal, kind, gains,
-                loss_weight, Ad, Bd, C, D, xc, w_x, w_c, research, target, unsolved, x_e,
-            )  # fmt: skip
+                k, n, f, s2, d, tr.actions[j], tr.rewards[j], tr.terminated[j], stp, c, x_e
+            )
             if not (math.isfinite(u + xe + loss) and max(abs(q1), abs(q2)) <= q_limit):
-                return -(n + 1)
-            n += 1
-    return n
+                return -(count + 1)
+            count += 1
+    return count

@@ -32,26 +32,68 @@ per-step Python of ``K`` runs.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit
 
 from cdqn.agents.base import EpsilonGreedy
-from cdqn.agents.controlled_population import CHECK, DONE
+from cdqn.agents.controlled_population import StepLog, flag_step
 from cdqn.agents.ddqn import step_settings
 from cdqn.agents.replay import StackedReplay
 from cdqn.config import ControllerConfig, TrainConfig
 from cdqn.network import (
+    Forward,
+    Params,
     QNetwork,
     Replay,
+    StackedForward,
     StackedTwoLayer,
     double_dqn_learn,
     forward_row,
+    member_params,
+    member_pass,
     step_settings_array,
     td_row,
 )
 from cdqn.vector_env import VectorStep
+
+
+class RecordScratch(NamedTuple):
+    """One member's step at a time: the pass at s' (``x``, ``p``, ``q``), ``∂Q_a/∂b_1``
+    (``g``) and Θ1, Θ2 (``theta``) in the network's dtype, as the single run's arrays hold
+    them."""
+
+    x: np.ndarray
+    p: np.ndarray
+    q: np.ndarray
+    g: np.ndarray
+    theta: np.ndarray
+
+
+class Buffers(NamedTuple):
+    """The members' replay buffers as the kernels take them
+    (:class:`cdqn.agents.replay.StackedReplay`'s arrays, not copies)."""
+
+    obs: np.ndarray
+    next_obs: np.ndarray
+    actions: np.ndarray
+    rewards: np.ndarray
+    terminated: np.ndarray
+    size: np.ndarray
+    pos: np.ndarray
+
+
+class Learning(NamedTuple):
+    """Per member: its step count, the schedule ``(learning_starts, train_freq,
+    target_update)`` (shared), whether it learns on this step, its last minibatch loss and
+    whether its pass is cached (:attr:`DDQNPopulation.cached`)."""
+
+    steps: np.ndarray
+    schedule: np.ndarray
+    learn: np.ndarray
+    last_loss: np.ndarray
+    cached: np.ndarray
 
 
 class _NoController:
@@ -93,7 +135,7 @@ class DDQNPopulation:
         self.q = np.empty((k, spec.n_actions), dtype)
         # One member's pass at s', ∂Q_a/∂b_1 and Θ1, Θ2 in the network's dtype (as the single
         # run's arrays hold them).
-        self.scratch = (
+        self.scratch = RecordScratch(
             np.empty(spec.n_obs, dtype),
             np.empty(spec.width, dtype),
             np.empty(spec.n_actions, dtype),
@@ -125,11 +167,20 @@ class DDQNPopulation:
         for k, explorer in enumerate(self.explorers):
             a = explorer.explore()
             self.plan[k] = -1 if a is None else a
-        n = self.net
         self.obs[:] = obs
-        _act_kernel(n.w1t, n.b1, n.w2, n.b2, obs, self.x, self.p, self.q, self.cached, self.plan,
+        _act_kernel(tuple(self.net.params), tuple(self.passes), self.cached, obs, self.plan,
                     self.actions)  # fmt: skip
         return self.actions
+
+    @property
+    def passes(self) -> StackedForward:
+        """Each member's forward pass at ``s`` (the act's)."""
+        return StackedForward(self.x, self.p, self.q)
+
+    @property
+    def learning(self) -> Learning:
+        """The members' learning schedule and state as the kernels take them."""
+        return Learning(self.steps, self.schedule, self.learn, self.last_loss, self.cached)
 
     def update(
         self,
@@ -146,11 +197,11 @@ class DDQNPopulation:
         :meth:`cdqn.agents.controlled_population.ControlledPopulation.update`.  Returns the
         number of flagged members."""
         n, r = self.net, self.replay
+        log = tuple(StepLog(ep, t, ret, rows, self.flags, self.loss_seen))
+        buffers = Buffers(r.obs, r.next_obs, r.actions, r.rewards, r.terminated, r.size, r.pos)
         _record_kernel(
-            n.w1t, n.b1, n.w2, n.b2, self.x, self.p, self.q, *self.scratch, actions,
-            step.reward, step.obs, step.terminated, self.obs, r.obs, r.next_obs, r.actions,
-            r.rewards, r.terminated, r.size, r.pos, self.steps, self.schedule, self.learn,
-            self.last_loss, self.cached, ep, t, ret, rows,
+            tuple(n.params), tuple(self.passes), tuple(self.scratch), actions, tuple(step),
+            self.obs, tuple(buffers), tuple(self.learning), log,
         )  # fmt: skip
         learning = np.flatnonzero(self.learn)
         for k in learning:  # ReplayBuffer.sample's draw
@@ -159,12 +210,8 @@ class DDQNPopulation:
             replay = Replay(r.obs, r.next_obs, r.actions, r.rewards, r.terminated)
             double_dqn_learn(n, self.target, replay, self.idx, self.learn, self.hyper,
                              self.last_loss)  # fmt: skip
-        tg = self.target
-        return _learn_kernel(
-            n.w1t, n.b1, n.w2, n.b2, tg.w1t, tg.b1, tg.w2, tg.b2, self.steps, self.schedule,
-            self.learn, self.last_loss, step.terminated, step.truncated, rows, q_limit,
-            self.flags, self.loss_seen,
-        )  # fmt: skip
+        return _learn_kernel(tuple(n.params), tuple(self.target.params), tuple(self.learning),
+                             tuple(step), log, q_limit)  # fmt: skip
 
     def select(self, keep: np.ndarray) -> None:
         """Keep only the members ``keep`` (indices, in that order)."""
@@ -252,84 +299,85 @@ class DDQNPopulation:
 
 
 @njit(cache=True)
-def _act_kernel(w1t, b1, w2, b2, obs, x, p, q, cached, plan, actions):
-    """Per member: the forward pass at ``obs`` (kept in ``x, p, q`` for the update; the
+def _act_kernel(net, passes, cached, obs, plan, actions):
+    """Per member: the forward pass at ``obs`` (kept in ``passes`` for the update; the
     cached one if it is at ``obs`` with the current parameters), then the planned random
-    action or ``argmax Q(obs, ·)``."""
+    action or ``argmax Q(obs, ·)``.  Bundles as plain tuples (:mod:`cdqn.network`,
+    bundles)."""
+    n, f = Params(*net), StackedForward(*passes)
     for k in range(obs.shape[0]):
         same = cached[k]
         for i in range(obs.shape[1]):
-            same = same and x[k, i] == obs[k, i]
+            same = same and f.x[k, i] == obs[k, i]
         if not same:
             for i in range(obs.shape[1]):
-                x[k, i] = obs[k, i]
-            forward_row(w1t[k], b1[k], w2[k], b2[k], x[k], p[k], q[k])
-        actions[k] = plan[k] if plan[k] >= 0 else np.argmax(q[k])
+                f.x[k, i] = obs[k, i]
+            forward_row(member_params(n, k), member_pass(f, k))
+        actions[k] = plan[k] if plan[k] >= 0 else np.argmax(f.q[k])
 
 
 @njit(cache=True)
-def _record_kernel(w1t, b1, w2, b2, x, p, q, x2, p2, q2s, g, theta, actions, reward, next_obs,
-                   terminated, obs, buf_obs, buf_next, buf_actions, buf_rewards,
-                   buf_terminated, size, pos, steps, schedule, learn, last_loss, cached, ep, t,
-                   ret, rows):  # fmt: skip
+def _record_kernel(net, passes, scratch, actions, step, obs, buffer, learning, log):
     """Per member, in the order of :meth:`cdqn.agents.DDQNAgent.update`: the pass at s',
-    Q1, Q2, Θ1, Θ2 and the signal row (with the last loss), the transition into the buffer,
-    the step count and whether the member learns on this step; the pass at s' is kept as
-    the next act's if the member does not learn."""
-    learning_starts, train_freq = schedule[0], schedule[1]
+    Q1, Q2, Θ1, Θ2 and the signal row (with the last loss), the transition ``(obs[k],
+    actions[k], step)`` into the buffer, the step count and whether the member learns on
+    this step; the pass at s' is kept as the next act's if the member does not learn.
+    Bundles as plain tuples: :class:`~cdqn.network.Params`,
+    :class:`~cdqn.network.StackedForward`, :class:`RecordScratch`,
+    :class:`cdqn.vector_env.VectorStep`, :class:`Buffers`, :class:`Learning`,
+    :class:`~cdqn.agents.controlled_population.StepLog`."""
+    n, f, s2 = Params(*net), StackedForward(*passes), RecordScratch(*scratch)
+    st, buf, ln, lg = VectorStep(*step), Buffers(*buffer), Learning(*learning), StepLog(*log)
+    learning_starts, train_freq = ln.schedule[0], ln.schedule[1]
+    f2, theta = Forward(s2.x, s2.p, s2.q), s2.theta
     for k in range(actions.shape[0]):
-        for i in range(x2.shape[0]):
-            x2[i] = next_obs[k, i]
-        forward_row(w1t[k], b1[k], w2[k], b2[k], x2, p2, q2s)
-        a, b = actions[k], np.argmax(q2s)
-        q1, q2 = float(q[k, a]), float(q2s[b])
-        theta[0], theta[1] = td_row(w2[k], x[k], p[k], x2, p2, a, b, g)
+        for i in range(f2.x.shape[0]):
+            f2.x[i] = st.obs[k, i]
+        nk, fk = member_params(n, k), member_pass(f, k)
+        forward_row(nk, f2)
+        a, b = actions[k], np.argmax(f2.q)
+        q1, q2 = float(fk.q[a]), float(f2.q[b])
+        theta[0], theta[1] = td_row(nk.w2, fk, f2, a, b, s2.g)
 
-        row = rows[k]
-        row[0], row[1], row[2], row[3], row[4] = ep[k], t[k], reward[k], q1, q2
-        row[5], row[6], row[7], row[8], row[9] = 0.0, 0.0, theta[0], theta[1], last_loss[k]
-        ret[k] += reward[k]
-        t[k] += 1
+        row, reward = lg.rows[k], st.reward[k]
+        row[0], row[1], row[2], row[3], row[4] = lg.ep[k], lg.t[k], reward, q1, q2
+        row[5], row[6], row[7], row[8], row[9] = 0.0, 0.0, theta[0], theta[1], ln.last_loss[k]
+        lg.ret[k] += reward
+        lg.t[k] += 1
 
-        j = pos[k]  # ReplayBuffer.add
-        for i in range(x2.shape[0]):
-            buf_obs[k, j, i] = obs[k, i]
-            buf_next[k, j, i] = next_obs[k, i]
-        buf_actions[k, j], buf_rewards[k, j] = a, reward[k]
-        buf_terminated[k, j] = 1.0 if terminated[k] else 0.0
-        pos[k] = (j + 1) % buf_obs.shape[1]
-        size[k] = min(size[k] + 1, buf_obs.shape[1])
-        steps[k] += 1
-        learn[k] = steps[k] >= learning_starts and steps[k] % train_freq == 0
-        cached[k] = not learn[k]
-        if cached[k]:
-            x[k, :], p[k, :], q[k, :] = x2, p2, q2s
+        j = buf.pos[k]  # ReplayBuffer.add
+        for i in range(f2.x.shape[0]):
+            buf.obs[k, j, i] = obs[k, i]
+            buf.next_obs[k, j, i] = st.obs[k, i]
+        buf.actions[k, j], buf.rewards[k, j] = a, reward
+        buf.terminated[k, j] = 1.0 if st.terminated[k] else 0.0
+        buf.pos[k] = (j + 1) % buf.obs.shape[1]
+        buf.size[k] = min(buf.size[k] + 1, buf.obs.shape[1])
+        ln.steps[k] += 1
+        ln.learn[k] = ln.steps[k] >= learning_starts and ln.steps[k] % train_freq == 0
+        ln.cached[k] = not ln.learn[k]
+        if ln.cached[k]:
+            fk.x[:], fk.p[:], fk.q[:] = f2.x, f2.p, f2.q
 
 
 @njit(cache=True)
-def _learn_kernel(w1t, b1, w2, b2, tw1t, tb1, tw2, tb2, steps, schedule, learn, last_loss,
-                  terminated, truncated, rows, q_limit, flags, loss_seen):  # fmt: skip
+def _learn_kernel(online, target, learning, step, log, q_limit):
     """Per member, after the minibatch steps (:func:`cdqn.network.double_dqn_learn`): the
     loss of a learning member into its signal row, the target copy every ``target_update``
-    steps, and the flags of the population loop."""
-    target_update = schedule[2]
+    steps, and the flags of the population loop (bundles as in :func:`_record_kernel`)."""
+    n, tg, ln = Params(*online), Params(*target), Learning(*learning)
+    st, lg = VectorStep(*step), StepLog(*log)
+    target_update = ln.schedule[2]
     flagged = 0
-    for k in range(steps.shape[0]):
-        if learn[k]:
-            rows[k, 9] = last_loss[k]
-        if steps[k] % target_update == 0:
-            tw1t[k][:] = w1t[k]
-            tb1[k][:] = b1[k]
-            tw2[k][:] = w2[k]
-            tb2[k][:] = b2[k]
-        loss = rows[k, 9]
-        if not (math.isfinite(loss) and max(abs(rows[k, 3]), abs(rows[k, 4])) <= q_limit):
-            flags[k] = CHECK
-        elif terminated[k] or truncated[k]:
-            flags[k] = DONE
-            loss_seen[k] = True
-        else:
-            flags[k] = 0
-            loss_seen[k] = True
-        flagged += flags[k] != 0
+    for k in range(ln.steps.shape[0]):
+        if ln.learn[k]:
+            lg.rows[k, 9] = ln.last_loss[k]
+        if ln.steps[k] % target_update == 0:
+            tg.w1t[k][:] = n.w1t[k]
+            tg.b1[k][:] = n.b1[k]
+            tg.w2[k][:] = n.w2[k]
+            tg.b2[k][:] = n.b2[k]
+        row = lg.rows[k]
+        healthy = math.isfinite(row[9]) and max(abs(row[3]), abs(row[4])) <= q_limit
+        flagged += flag_step(lg, k, healthy, st.terminated[k] or st.truncated[k])
     return flagged
