@@ -185,3 +185,32 @@ def test_the_tuner_refuses_an_environment_it_cannot_make_before_it_starts(
 
     errors = check_overrides(overrides, config_name="tune", check=check_tune)
     assert len(errors) == 1 and errors[0].startswith(expected), errors
+
+
+def test_a_search_space_that_samples_a_refused_value_stops_the_study_in_one_line(
+    tmp_path: Path,
+) -> None:
+    """A user's range outside what cdqn accepts (ε lowered by 2–3 per random action): the
+    first trial's configuration is refused, the study stops with one line and exit status 2,
+    no traceback, and its MLflow runs end FAILED with the reason (they stayed RUNNING)."""
+    from tests.helpers import run_cli
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    _store(uri, "cdqn-tune", tmp_path)
+    space = [
+        "tune.space.eps_schedule.choices=[random_action]",
+        "tune.space.eps_dec_action.low=2", "tune.space.eps_dec_action.high=3",
+    ]  # fmt: skip
+    proc = run_cli("cdqn.tune", [*_one_trial(tmp_path, uri), "tune.trials=2", *space], tmp_path)
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert "Traceback" not in proc.stdout + proc.stderr
+    lines = proc.stderr.splitlines()
+    (first,) = [i for i, ln in enumerate(lines) if ln.startswith("error:")]
+    (line, detail) = lines[first:]
+    assert line == "error: tune.space: trial 0's sample is invalid configuration:"
+    assert detail.startswith("  - train.eps_dec=2.") and detail.endswith(": must lie in [0, 1]")
+    (parent,) = _runs(tmp_path, kind="tune")
+    assert parent.info.status == "FAILED"
+    assert parent.data.tags["failure_reason"].startswith("tune.space: trial 0's sample is")
+    (trial,) = _runs(tmp_path, kind="trial")
+    assert trial.info.status == "FAILED"

@@ -198,6 +198,10 @@ class Study:
             self.tracker.client.set_tag(self.parent, "interrupted", "true")
             self.tracker.client.set_terminated(self.parent, "KILLED")
             raise
+        except Exception as err:  # the study's parent run ends FAILED with the reason
+            self.tracker.client.set_tag(self.parent, Tag.FAILURE_REASON, str(err))
+            self.tracker.client.set_terminated(self.parent, "FAILED")
+            raise
         wall = time.perf_counter() - t0
         if t.worker != 0:
             log.info("worker %d ran trials %s; worker 0 closes the study", t.worker, ran)

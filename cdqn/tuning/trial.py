@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from cdqn.config import ConfigError
 from cdqn.control.errors import DesignError
 from cdqn.records import Metric
 from cdqn.tuning.clock import MEMBER_EPISODES
@@ -42,10 +43,18 @@ def run_trials(study_obj: Any, study: Any, lock: Any) -> list[int]:
     claimed = (TrialState.COMPLETE, TrialState.PRUNED, TrialState.RUNNING)
     ran: list[int] = []
 
+    refused: list[ConfigError] = []
+
     def objective(trial: Any) -> float:
         lock.release()
         ran.append(trial.number)
-        return Trial(study_obj, trial).run()
+        try:
+            return Trial(study_obj, trial).run()
+        except ConfigError as err:  # the search space gives values cdqn refuses: stop here
+            refused.append(ConfigError(f"tune.space: trial {trial.number}'s sample is {err}"))
+            trial.set_user_attr("status", "refused")
+            trial.study.stop()
+            raise optuna.TrialPruned(str(refused[-1])) from None
 
     attempts, waiting, timed_out = 0, False, False
     while attempts < t.trials:  # at most tune.trials trials per worker (failed ones too)
@@ -66,6 +75,8 @@ def run_trials(study_obj: Any, study: Any, lock: Any) -> list[int]:
                 break
             attempts += 1
             study.optimize(objective, n_trials=1, catch=(RuntimeError,))
+            if refused:
+                raise refused[0]
         finally:
             lock.release()
         if study_obj.stop.requested():  # a signal during Optuna's bookkeeping of the trial
@@ -137,8 +148,9 @@ class Trial:
             raise KeyboardInterrupt
         try:
             prog, result, pruned_at = train_population(self.s, cfg, self._report)
-        except BaseException as err:
-            self._end("KILLED", "failed", f"{type(err).__name__}: {err}", status="failed")
+        except BaseException as err:  # a signal ends it KILLED, an error FAILED
+            end = "FAILED" if isinstance(err, Exception) else "KILLED"
+            self._end(end, "failed", f"{type(err).__name__}: {err}", status="failed")
             raise
         return self._score(params, prog, result, pruned_at)
 
