@@ -27,3 +27,10 @@ def compose_config(overrides: list[str] | None = None) -> DictConfig:
 def tracking_uri(tmp_path: Path) -> str:
     """A fresh embedded MLflow store for one test."""
     return f"sqlite:///{tmp_path / 'mlflow.db'}"
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Tests marked ``slow`` first: with the suite spread over worker processes (pytest-xdist,
+    a test at a time to whichever worker is free) the long tests start early and the many
+    short ones fill the gaps, instead of one long test running alone at the end."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
