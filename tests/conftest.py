@@ -2,13 +2,24 @@
 
 from __future__ import annotations
 
+import os
+import sys
 from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
-from cdqn.config import register_configs
+from cdqn.config import register_configs  # cdqn sets NUMBA_CACHE_DIR; numba is not imported
+
+if worker := os.environ.get("PYTEST_XDIST_WORKER"):
+    # numba reads its cache index, adds an entry and writes it back without a lock: two processes
+    # compiling one function for different argument types at once can leave the index pointing
+    # at the other's machine code (numba issue 10128).  Each pytest-xdist worker, and every
+    # command its tests start (they inherit the variable), compiles into a folder of its own
+    # under cdqn's; numba reads the variable once, when it is imported
+    assert "numba" not in sys.modules, "NUMBA_CACHE_DIR is set too late"
+    os.environ["NUMBA_CACHE_DIR"] = str(Path(os.environ["NUMBA_CACHE_DIR"]) / worker)
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 TINY = ["network.width=32", "train.episodes=3", "train.progress=false"]
