@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -32,6 +33,18 @@ def compose_config(overrides: list[str] | None = None) -> DictConfig:
     """The configuration ``python -m cdqn.train <overrides>`` would run."""
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
         return compose("config", overrides=list(overrides or []))
+
+
+@pytest.fixture(scope="session", autouse=True)
+def working_folder(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """Every test, and every module fixture, runs in a folder of its own test process (a
+    pytest-xdist worker), not in the checkout: what cdqn and MLflow write relative to the
+    working folder (a SQLite store's artifacts in ``./mlruns``, ``./outputs``, ``./multirun``,
+    ``./checkpoints``) stays out of the checkout and apart from the other workers'."""
+    folder = tmp_path_factory.mktemp("cwd")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.chdir(folder)
+        yield folder
 
 
 @pytest.fixture
