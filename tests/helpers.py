@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import os
+import random
 import signal
 import socket
 import subprocess
@@ -126,6 +127,38 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def _below_ephemeral() -> range:
+    """Ports the kernel does not hand out on its own: below its ephemeral range
+    (``net.ipv4.ip_local_port_range``, from which it picks the local port of every outgoing
+    connection and of a bind to port 0), down to half its start."""
+    try:
+        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        low = 32768  # Linux's default start
+    return range(max(1024, low // 2), low)
+
+
+def server_port() -> int:
+    """A free TCP port on 127.0.0.1 for a server that is stopped and started again on it.
+
+    While such a server is down its port must stay free.  One from :func:`free_port` could
+    meanwhile become the local port of any outgoing connection, or another test's
+    :func:`free_port`; this one is below the kernel's ephemeral range, in the share of it that
+    belongs to this pytest-xdist worker (``PYTEST_XDIST_WORKER=gw<i>``), so no other worker
+    picks it either."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    index = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw"))
+    share = _below_ephemeral()[index::workers]
+    for port in random.sample(share, min(200, len(share))):
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue  # taken by something else on the machine
+            return port
+    raise RuntimeError(f"no free port among 200 tried of {share}")
+
+
 def signals_after_episode(monkeypatch: pytest.MonkeyPatch) -> Callable[..., None]:
     """``arm(k, SIGTERM, ...)``: once episode ``k`` is recorded, this process sends itself
     those signals (real signals, handled by the training run's handlers); for a fixture."""
@@ -191,7 +224,7 @@ class MlflowServer:
     def __init__(self, root: Path, port: int | None = None) -> None:
         root.mkdir(parents=True, exist_ok=True)
         self.root = root
-        self.port = port or free_port()
+        self.port = port or server_port()
         self.uri = f"http://127.0.0.1:{self.port}"
         self.proc: subprocess.Popen[bytes] | None = None
         self._log = None

@@ -198,14 +198,15 @@ def test_a_server_that_goes_away_and_comes_back(tmp_path: Path) -> None:
     the file, and ``resume=`` (server back) continues it to the uninterrupted result."""
     with MlflowServer(tmp_path / "server") as server:
         uri = server.uri
-        # 1. a 5 s outage within tracking.retry_s=120: the run finishes, nothing lost
+        # 1. an outage within tracking.retry_s=120, until the run has met it: the run
+        # finishes, nothing lost
         args = [*OUTAGE, f"tracking.uri={uri}", "tracking.retry_s=120"]
         args.append("hydra.verbose=cdqn")  # checkpoints are logged at DEBUG
         proc, seen = start_cli("cdqn.train", args, tmp_path), []
         try:
             read_until(proc, "checkpoint at episode 50", seen)
             server.stop()
-            time.sleep(5)
+            read_until(proc, f"tracking server {uri} not answering", seen)
             server.start()
         finally:
             output = finish(proc, seen, timeout=300)
