@@ -55,12 +55,21 @@ import sys
 import tempfile
 from pathlib import Path
 from types import ModuleType
-from typing import NamedTuple, TypedDict
+from typing import TYPE_CHECKING, NamedTuple, TypedDict
 
 import numpy as np
 from numba import njit
 
-from cdqn.network import Params, Replay, member_params, member_replay
+from cdqn.network import (
+    Params,
+    Replay,
+    member_params,
+    member_replay,
+    step_settings_array,
+)
+
+if TYPE_CHECKING:
+    from cdqn.network import FastTwoLayer, StackedTwoLayer
 
 BLOCK = 256
 """Hidden units per block of the forward loop: the block's rows of both networks' parameters
@@ -624,3 +633,55 @@ def kernels(n_obs: int, n_actions: int) -> ModuleType:
     sys.modules[name] = module  # numba's disk cache imports it by this name
     spec.loader.exec_module(module)
     return module
+
+
+def double_dqn_learn(
+    online: StackedTwoLayer,
+    target: StackedTwoLayer,
+    replay: Replay,
+    idx: np.ndarray,
+    members: np.ndarray,
+    hyper: np.ndarray,
+    last_loss: np.ndarray,
+) -> None:
+    """One Double DQN minibatch step of each member ``k`` with ``members[k]``, on the
+    transitions ``idx[k]`` of its buffer; its loss before the step into ``last_loss[k]``.
+
+    .. math::  \\mathcal L = \\tfrac12 \\sum_i \\delta_i^2,\\qquad
+               \\delta_i = r_i + \\gamma (1-d_i)\\,\\bar Q(s'_i, \\arg\\max_a Q(s'_i, a))
+               - Q(s_i, a_i),
+
+    targets held constant; ``−∂L/∂θ = Σ_i δ_i ∂Q_{a_i}(s_i)/∂θ`` with the per-sample
+    gradients of :mod:`cdqn.network`'s docstring, all at the current parameters, then
+    ``θ ← θ + α·(−∂L/∂θ)`` (torch's SGD step on L), written out by hand in :func:`learn`.
+    ``hyper``: :func:`cdqn.network.step_settings_array`.
+    """
+    learn(online.params, target.params, replay, idx, members, hyper, BLOCK, last_loss)
+
+
+def double_dqn_step(
+    online: FastTwoLayer,
+    target: FastTwoLayer,
+    obs: np.ndarray,
+    actions: np.ndarray,
+    rewards: np.ndarray,
+    next_obs: np.ndarray,
+    terminated: np.ndarray,
+    discount: float,
+    lr: float,
+) -> float:
+    """One SGD step of Double DQN on the minibatch given (:func:`double_dqn_learn`);
+    returns the loss before the step."""
+    replay = Replay(
+        np.asarray(obs, dtype=np.float64)[None],
+        np.asarray(next_obs, dtype=np.float64)[None],
+        np.ascontiguousarray(actions, dtype=np.int64)[None],
+        np.asarray(rewards, dtype=np.float64)[None],
+        np.asarray(terminated, dtype=np.float64)[None],
+    )
+    loss = np.empty(1)
+    double_dqn_learn(
+        online.stack, target.stack, replay, np.arange(len(actions))[None],
+        np.ones(1, dtype=np.bool_), step_settings_array(lr, discount, online.dtype), loss,
+    )  # fmt: skip
+    return float(loss[0])

@@ -507,63 +507,9 @@ def member_replay(r, k):
 
 
 def step_settings_array(lr: float, discount: float, dtype: np.dtype) -> np.ndarray:
-    """``(α, γ, 0)`` in the network's dtype, as :func:`double_dqn_learn` takes them."""
+    """``(α, γ, 0)`` in the network's dtype, as :func:`cdqn.ddqn_kernels.double_dqn_learn`
+    takes them."""
     return np.array([lr, discount, 0.0], dtype=dtype)
-
-
-def double_dqn_learn(
-    online: StackedTwoLayer,
-    target: StackedTwoLayer,
-    replay: Replay,
-    idx: np.ndarray,
-    members: np.ndarray,
-    hyper: np.ndarray,
-    last_loss: np.ndarray,
-) -> None:
-    """One Double DQN minibatch step of each member ``k`` with ``members[k]``, on the
-    transitions ``idx[k]`` of its buffer; its loss before the step into ``last_loss[k]``.
-
-    .. math::  \\mathcal L = \\tfrac12 \\sum_i \\delta_i^2,\\qquad
-               \\delta_i = r_i + \\gamma (1-d_i)\\,\\bar Q(s'_i, \\arg\\max_a Q(s'_i, a))
-               - Q(s_i, a_i),
-
-    targets held constant; ``−∂L/∂θ = Σ_i δ_i ∂Q_{a_i}(s_i)/∂θ`` with the per-sample
-    gradients of the module docstring, all at the current parameters, then
-    ``θ ← θ + α·(−∂L/∂θ)`` (torch's SGD step on L), written out by hand in
-    :mod:`cdqn.ddqn_kernels`.  ``hyper``: :func:`step_settings_array`.
-    """
-    from cdqn.ddqn_kernels import BLOCK  # Double DQN's alone
-    from cdqn.ddqn_kernels import learn as minibatch_learn
-
-    minibatch_learn(online.params, target.params, replay, idx, members, hyper, BLOCK, last_loss)
-
-
-def double_dqn_step(
-    online: FastTwoLayer,
-    target: FastTwoLayer,
-    obs: np.ndarray,
-    actions: np.ndarray,
-    rewards: np.ndarray,
-    next_obs: np.ndarray,
-    terminated: np.ndarray,
-    discount: float,
-    lr: float,
-) -> float:
-    """One SGD step of Double DQN on the minibatch given (:func:`double_dqn_learn`);
-    returns the loss before the step."""
-    replay = Replay(
-        np.asarray(obs, dtype=np.float64)[None],
-        np.asarray(next_obs, dtype=np.float64)[None],
-        _int(actions)[None],
-        np.asarray(rewards, dtype=np.float64)[None],
-        np.asarray(terminated, dtype=np.float64)[None],
-    )
-    loss = np.empty(1)
-    double_dqn_learn(
-        online.stack, target.stack, replay, np.arange(len(actions))[None],
-        np.ones(1, dtype=np.bool_), step_settings_array(lr, discount, online.dtype), loss,
-    )  # fmt: skip
-    return float(loss[0])
 
 
 def _int(a: np.ndarray) -> np.ndarray:

@@ -55,6 +55,6 @@ def tracking_uri(tmp_path: Path) -> str:
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Tests marked ``slow`` first: with the suite spread over worker processes (pytest-xdist,
-    a test at a time to whichever worker is free) the long tests start early and the many
-    short ones fill the gaps, instead of one long test running alone at the end."""
+    a file at a time to whichever worker is free) the files with long tests start early and
+    the many short ones fill the gaps, instead of one long file running alone at the end."""
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)

@@ -12,8 +12,9 @@ from omegaconf import OmegaConf
 
 from cdqn.agents.ddqn_population import DDQNPopulation
 from cdqn.control.factory import make_controller
+from cdqn.ddqn_kernels import double_dqn_step
 from cdqn.envs import make_env
-from cdqn.network import FastTwoLayer, NetworkSpec, QNetwork, double_dqn_step
+from cdqn.network import FastTwoLayer, NetworkSpec, QNetwork
 from cdqn.training.build import build, build_population
 from cdqn.training.loop import TrainState, train
 from cdqn.training.member import Member

@@ -24,11 +24,11 @@ import torch
 from cdqn.agents.base import EpsilonGreedy, StepRecord
 from cdqn.agents.replay import ReplayBuffer
 from cdqn.config import ControllerConfig, TrainConfig
+from cdqn.ddqn_kernels import double_dqn_learn
 from cdqn.network import (
     FastTwoLayer,
     QNetwork,
     Replay,
-    double_dqn_learn,
     step_settings_array,
 )
 
@@ -122,7 +122,7 @@ class DDQNAgent:
 
     def _fast_learn(self) -> float:
         """:meth:`_learn` with the two-layer network's gradients written out by hand
-        (:func:`cdqn.network.double_dqn_learn` on a stack of one): the minibatch drawn as
+        (:func:`cdqn.ddqn_kernels.double_dqn_learn` on a stack of one): the minibatch drawn as
         :meth:`ReplayBuffer.sample` draws it, gathered by the kernel."""
         idx = self.buffer.rng.integers(self.buffer.size, size=self.cfg.batch_size)
         loss = np.empty(1)

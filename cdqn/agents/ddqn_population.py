@@ -21,7 +21,7 @@ Steps 1–2 are one compiled loop over the members built from the row functions 
 uses (:func:`cdqn.network.forward_row`, :func:`cdqn.network.td_row`); step 3 draws each
 learning member's minibatch indices with the member's generator as the single run draws
 them (exploration and sampling share it, so neither can be drawn ahead), then one compiled
-call (:func:`cdqn.network.double_dqn_learn`) gathers every learning member's minibatch from
+call (:func:`cdqn.ddqn_kernels.double_dqn_learn`) gathers every learning member's minibatch from
 its buffer and takes its step with the kernel a single run uses on its stack of one
 (:mod:`cdqn.ddqn_kernels`; the loop over the nonzero inputs for a minibatch of mostly
 zeros, chosen from the minibatch alone).  So each member computes the numbers of the single
@@ -42,6 +42,7 @@ from cdqn.agents.controlled_population import StepLog, flag_step
 from cdqn.agents.ddqn import step_settings
 from cdqn.agents.replay import StackedReplay
 from cdqn.config import ControllerConfig, TrainConfig
+from cdqn.ddqn_kernels import double_dqn_learn
 from cdqn.network import (
     Forward,
     Params,
@@ -49,7 +50,6 @@ from cdqn.network import (
     Replay,
     StackedForward,
     StackedTwoLayer,
-    double_dqn_learn,
     forward_row,
     member_params,
     member_pass,
@@ -362,7 +362,7 @@ def _record_kernel(net, passes, scratch, actions, step, obs, buffer, learning, l
 
 @njit(cache=True)
 def _learn_kernel(online, target, learning, step, log, q_limit):
-    """Per member, after the minibatch steps (:func:`cdqn.network.double_dqn_learn`): the
+    """Per member, after the minibatch steps (:func:`cdqn.ddqn_kernels.double_dqn_learn`): the
     loss of a learning member into its signal row, the target copy every ``target_update``
     steps, and the flags of the population loop (bundles as in :func:`_record_kernel`)."""
     n, tg, ln = Params(*online), Params(*target), Learning(*learning)

@@ -224,8 +224,10 @@ def _take_registration(
     label = env_label(str(env.id), _kwargs(env))
     env.name = label
     changed = [f"named {label}"]
+    plain = OmegaConf.to_container(env, resolve=True)
+    assert isinstance(plain, dict)
     for key in FEATURE_KEYS:  # indices and widths of the preset's observation, not this one's
-        value = OmegaConf.to_container(env, resolve=True)[key]
+        value = plain[key]
         if value is not None and value == getattr(preset, key) and f"env.{key}" not in given:
             env[key] = None
             changed.append(f"env.{key}=null (not {preset.name}'s {value})")
