@@ -16,7 +16,13 @@ from cdqn.control.certificate import ControllerMatrices, certify, max_real_poles
 from cdqn.control.design import box_from_config, design_inputs
 from cdqn.control.errors import DesignError
 from cdqn.control.factory import make_controller, synthesized_controller
-from cdqn.control.hinf import HinfWeightSet, Regularisation, generalized_plant, hinf_bisection
+from cdqn.control.hinf import (
+    HinfInfeasible,
+    HinfWeightSet,
+    Regularisation,
+    generalized_plant,
+    hinf_bisection,
+)
 from cdqn.control.runtime import StateSpace, StaticGain
 from cdqn.control.structured import (
     FixedStructureWeights,
@@ -24,7 +30,13 @@ from cdqn.control.structured import (
     default_starts,
     tune_fixed_structure,
 )
-from cdqn.control.synthesis import design_controller, load_or_design
+from cdqn.control.synthesis import (
+    BOUNDED_CORNERS,
+    _cover,
+    _design_hinf,
+    design_controller,
+    load_or_design,
+)
 from cdqn.control.weights import SisoWeight
 from cdqn.ntk_bounds import summarise
 from tests.conftest import compose_config
@@ -246,6 +258,26 @@ def test_error_failing_synthesis() -> None:
     P = generalized_plant(*box.nominal, 1.0, ws, Regularisation())
     with pytest.raises(DesignError, match=r"H∞ synthesis failed: SB10AD found no stabilising"):
         hinf_bisection(P, gamma_max=1e-3)
+
+
+def test_dynamic_design_refits_a_cover_that_breaks_sb10ad() -> None:
+    """A one-hot environment's measured box (FrozenLake-v1: Θ1 ∈ [51, 54], Θ2/Θ1 ∈ [0.58, 1],
+    nominal ratio 0.8): the free cover puts a pole near 1e-7 rad/s, SB10AD refuses the plant
+    (assumption A3), and the design is made with the cover's corners near the band."""
+    conf = _conf("cartpole", "hinf", ["weights=generic", "controller.synthesis.cache=false"])
+    box = NTKBox((51.0, 54.0), (0.58, 1.0), (52.0, 41.6))
+    inputs = design_inputs(conf.controller, conf.weights, conf.train.discount, conf.train.lr, box)
+    samples = box.sample(int(inputs.synthesis["samples"]), int(inputs.synthesis["seed"]))
+    free, bounded = _cover(inputs, samples), _cover(inputs, samples, BOUNDED_CORNERS)
+    band = inputs.synthesis["band"]
+    assert min(np.abs(np.roots(free.weight.den))) < band[0] / 1e3
+    assert min(np.abs(np.roots(bounded.weight.den))) >= band[0] / BOUNDED_CORNERS * 0.999
+    assert bounded.margin >= 1.0  # still a cover: above the sampled error everywhere
+    with pytest.raises(HinfInfeasible, match="SB10AD"):
+        _design_hinf(inputs, samples, free)
+    design = design_controller(inputs)
+    assert design.certificate.passed and design.kind == "hinf"
+    assert design.cover.weight == bounded.weight
 
 
 def test_error_fixed_structure_no_feasible_start() -> None:

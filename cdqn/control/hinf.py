@@ -331,6 +331,10 @@ def _sb10ad(P: GeneralizedPlant, gamma: float) -> tuple[Any, ...]:
     )
 
 
+class HinfInfeasible(DesignError):
+    """No γ up to the bisection's limit gives a stabilising SB10AD solution."""
+
+
 def hinf_bisection(
     P: GeneralizedPlant, rel_tol: float = 1e-3, gamma_max: float = 1e8
 ) -> HinfResult:
@@ -363,7 +367,7 @@ def hinf_bisection(
             break
         hi *= 10.0
     if best is None:
-        raise DesignError(
+        raise HinfInfeasible(
             f"H∞ synthesis failed: SB10AD found no stabilising controller for γ ≤ {gamma_max:g} "
             f"(last: {last_error})"
         )

@@ -43,6 +43,7 @@ from cdqn.control.design import (
 from cdqn.control.errors import DesignError
 from cdqn.control.h2 import LQRError, h2_gains_plant
 from cdqn.control.hinf import (
+    HinfInfeasible,
     HinfWeightSet,
     Regularisation,
     StateSpaceMatrices,
@@ -62,6 +63,10 @@ from cdqn.control.structured import (
 from cdqn.control.target import check_target, dc_gain, learning_target
 from cdqn.control.uncertainty import CoverFit, fit_cover
 from cdqn.control.weights import SisoWeight
+
+BOUNDED_CORNERS = 100.0
+"""Refit of a dynamic design whose free cover SB10AD refuses: the cover's poles and zeros
+within two decades of ``synthesis.band``."""
 
 
 def _weight_set(w: dict[str, Any], prefix: str) -> dict[str, SisoWeight]:
@@ -366,16 +371,14 @@ def design_controller(inputs: DesignInputs) -> ControllerDesign:
     if inputs.target is not None:
         check_target(inputs.target, inputs.box)
     samples = inputs.box.sample(int(syn["samples"]), int(syn["seed"]))
-    cover = fit_cover(
-        samples,
-        inputs.box.nominal,
-        inputs.discount,
-        (float(syn["band"][0]), float(syn["band"][1])),
-        int(syn["cover_order"]),
-        plant=syn["plant"],
-    )
+    cover = _cover(inputs, samples)
     if inputs.kind == "hinf":
-        design = _design_hinf(inputs, samples, cover)
+        try:
+            design = _design_hinf(inputs, samples, cover)
+        except HinfInfeasible:
+            # a free cover with a corner far below the band breaks SB10AD's assumption A3
+            # (cdqn.control.uncertainty): refit within BOUNDED_CORNERS of the band
+            design = _design_hinf(inputs, samples, _cover(inputs, samples, BOUNDED_CORNERS))
     else:
         design = _design_hinf_f(inputs, samples, cover)
     design.seconds = time.perf_counter() - t0
@@ -388,6 +391,22 @@ def design_controller(inputs: DesignInputs) -> ControllerDesign:
             f"{list(inputs.box.ratio)} failed its certificate: {design.certificate.reason()}"
         )
     return design
+
+
+def _cover(inputs: DesignInputs, samples: np.ndarray, corners: float | None = None) -> CoverFit:
+    """The uncertainty cover of the box's samples over ``synthesis.band``
+    (:func:`cdqn.control.uncertainty.fit_cover`)."""
+    syn = inputs.synthesis
+    band = (float(syn["band"][0]), float(syn["band"][1]))
+    return fit_cover(
+        samples,
+        inputs.box.nominal,
+        inputs.discount,
+        band,
+        int(syn["cover_order"]),
+        plant=syn["plant"],
+        corners=corners,
+    )
 
 
 def _check_discrete_feasible(inputs: DesignInputs) -> None:

@@ -17,6 +17,12 @@ whose real poles and zeros make stability and minimum phase hold by construction
 shape ``(z, p)`` minimises the mean log-gap ``mean_ω log(|w|/max_i σ̄(E_i))`` and ``k`` is then
 the smallest value that overbounds every grid point.
 
+The corners are free (``z_j, p_j ∈ [e^-50, e^50]``) unless ``corners`` limits them to
+``[ω_lo/c, c·ω_hi]``.  A free fit can put a pole at about 1e-9 rad/s, far below the band, to
+follow a bound that grows toward ω_lo; such a pole is numerically on the imaginary axis, and
+the H∞ plant then violates SB10AD's assumption A3 (``[A − jωI, B2; C1, D12]`` of full column
+rank). :mod:`cdqn.control.synthesis` refits with ``corners`` when that happens.
+
 Why a band: with γ = 1 every plant has a pole at γΘ2 − Θ1 (and the paper's plant a second one
 at s = 0), so a plant of the box with Θ2 ≈ Θ1/γ has a pole at (paper: a double pole at) 0
 while ``P_0`` has none (a single one), and ``σ̄(E)`` grows like 1/ω below ``|γΘ2 − Θ1|``: no
@@ -90,26 +96,37 @@ class CoverFit:
         return float(np.min(self.weight.mag(self.omega) / self.bound))
 
 
-def _shape(x: np.ndarray, order: int, s: np.ndarray) -> np.ndarray:
-    z, p = np.exp(np.clip(x[:order], -50, 50)), np.exp(np.clip(x[order:], -50, 50))
+FREE = (-50.0, 50.0)
+"""Limits of the log-corners ``ln z_j, ln p_j`` of a free fit."""
+
+
+def _shape(
+    x: np.ndarray, order: int, s: np.ndarray, limits: tuple[float, float] = FREE
+) -> np.ndarray:
+    z, p = np.exp(np.clip(x[:order], *limits)), np.exp(np.clip(x[order:], *limits))
     out = np.ones_like(s)
     for zj, pj in zip(z, p, strict=True):
         out = out * (s / zj + 1) / (s / pj + 1)
     return out
 
 
-def _weight_from(x: np.ndarray, order: int, k: float) -> SisoWeight:
+def _weight_from(
+    x: np.ndarray, order: int, k: float, limits: tuple[float, float] = FREE
+) -> SisoWeight:
     num, den = np.array([k]), np.array([1.0])
-    z, p = np.exp(np.clip(x[:order], -50, 50)), np.exp(np.clip(x[order:], -50, 50))
+    z, p = np.exp(np.clip(x[:order], *limits)), np.exp(np.clip(x[order:], *limits))
     for zj, pj in zip(z, p, strict=True):
         num = np.polymul(num, [1.0 / zj, 1.0])
         den = np.polymul(den, [1.0 / pj, 1.0])
     return SisoWeight(tuple(float(c) for c in num), tuple(float(c) for c in den), "w_cover")
 
 
-def fit_overbound(omega: np.ndarray, bound: np.ndarray, order: int) -> SisoWeight:
+def fit_overbound(
+    omega: np.ndarray, bound: np.ndarray, order: int, corners: float | None = None
+) -> SisoWeight:
     """Lowest-mean-log-gap weight of ``order`` pole/zero pairs with ``|w| ≥ bound`` on
-    ``omega`` (module docstring)."""
+    ``omega`` (module docstring); ``corners=c`` keeps every pole and zero within
+    ``[ω_lo/c, c·ω_hi]``."""
     if order < 0:
         raise DesignError(f"cover order {order}: must be >= 0")
     if not np.all(np.isfinite(bound)):
@@ -122,12 +139,14 @@ def fit_overbound(omega: np.ndarray, bound: np.ndarray, order: int) -> SisoWeigh
     if order == 0:
         return SisoWeight((float(bound.max() * COVER_SAFETY),), (1.0,), "w_cover")
 
+    lo, hi = np.log(omega[0]), np.log(omega[-1])
+    limits = FREE if corners is None else (lo - np.log(corners), hi + np.log(corners))
+
     def gain_and_gap(x: np.ndarray) -> tuple[float, float]:
-        log_shape = np.log(np.abs(_shape(x, order, s)))
+        log_shape = np.log(np.abs(_shape(x, order, s, limits)))
         log_k = float(np.max(log_b - log_shape))
         return log_k, float(np.mean(log_k + log_shape - log_b))
 
-    lo, hi = np.log(omega[0]), np.log(omega[-1])
     starts = []
     for a in (0.2, 0.5, 0.8):
         for b in (0.2, 0.5, 0.8):
@@ -145,7 +164,7 @@ def fit_overbound(omega: np.ndarray, bound: np.ndarray, order: int) -> SisoWeigh
         if res.fun < best_gap:
             best_x, best_gap = res.x, float(res.fun)
     log_k, _ = gain_and_gap(best_x)
-    return _weight_from(best_x, order, float(np.exp(log_k)) * COVER_SAFETY)
+    return _weight_from(best_x, order, float(np.exp(log_k)) * COVER_SAFETY, limits)
 
 
 def fit_cover(
@@ -156,15 +175,17 @@ def fit_cover(
     order: int,
     n_omega: int = 200,
     plant: str = DEFAULT_PLANT,
+    corners: float | None = None,
 ) -> CoverFit:
-    """Fit the output-multiplicative cover of the sampled plants of ``plant`` over ``band``."""
+    """Fit the output-multiplicative cover of the sampled plants of ``plant`` over ``band``
+    (``corners``: :func:`fit_overbound`)."""
     lo, hi = float(band[0]), float(band[1])
     if not 0 < lo < hi:
         raise DesignError(f"synthesis.band={[lo, hi]}: need 0 < lower < upper (rad/s)")
     omega = np.logspace(np.log10(lo), np.log10(hi), n_omega)
     errors = relative_errors(points, nominal, discount, omega, plant)
     bound = errors.max(axis=0)
-    weight = fit_overbound(omega, bound, order)
+    weight = fit_overbound(omega, bound, order, corners)
     return CoverFit(weight, omega, bound, (lo, hi), order, errors)
 
 
