@@ -48,6 +48,7 @@ from cdqn.agents.controlled_population import (  # noqa: E402
     STATIC_GAIN,
     ControlledPopulation,
     ControllerArrays,
+    ControllerView,
 )
 from cdqn.agents.ddqn_population import DDQNPopulation  # noqa: E402
 from cdqn.config import Config, register_configs, to_schema  # noqa: E402
@@ -197,21 +198,24 @@ def _timed_ddqn(agent: Any, timers: _Timers) -> Iterator[None]:
 
 def controller_seconds(c: ControllerArrays, member_steps: int) -> float:
     """CPU seconds of ``member_steps`` controller steps on copies of ``c``'s arrays."""
-    k = len(c.loss_weight)
-    gains, x, lw = c.gains.copy(), c.x.copy() * 0.0, c.loss_weight.copy()
-    unsolved = c.unsolved.copy()
-    args = (gains, lw, c.Ad, c.Bd, c.C, c.D, x, c.w_x, c.w_c, c.research, c.target, unsolved)
-    _controller_loop(1, c.kind, *args)  # compiled (or loaded) before it is timed
+    v = c.view
+    k = len(v.loss_weight)
+    copies = v._replace(gains=v.gains.copy(), loss_weight=v.loss_weight.copy(),
+                        x=np.zeros_like(v.x), unsolved=v.unsolved.copy())  # fmt: skip
+    _controller_loop(1, tuple(copies))  # compiled (or loaded) before it is timed
     t0 = clock()
-    _controller_loop(member_steps // k, c.kind, *args)
+    _controller_loop(member_steps // k, tuple(copies))
     return clock() - t0
 
 
 @njit(cache=True)
-def _controller_loop(n, kind, gains, loss_weight, Ad, Bd, C, D, xc, w_x, w_c, research, target,
-                     unsolved):  # fmt: skip
-    """``n`` steps of every member's controller on representative signals (Θ1 = 300,
-    Θ2 = 290, Q1 = 1, Q2 = 1.01, x_e = 1e-3)."""
+def _controller_loop(n, controller):
+    """``n`` steps of every member's controller (a :class:`ControllerView` as a tuple) on
+    representative signals (Θ1 = 300, Θ2 = 290, Q1 = 1, Q2 = 1.01, x_e = 1e-3)."""
+    c = ControllerView(*controller)
+    kind, gains, loss_weight, xc, unsolved = c.kind, c.gains, c.loss_weight, c.x, c.unsolved
+    Ad, Bd, C, D, w_x, w_c = c.Ad, c.Bd, c.C, c.D, c.w_x, c.w_c
+    research, target = c.research, c.target
     acc = 0.0
     for step in range(n):
         for k in range(gains.shape[0]):

@@ -61,6 +61,19 @@ class MemberControllers(Protocol):
         ...
 
 
+class LoopState(NamedTuple):
+    """What the population loop hands a :class:`PopulationAgent`'s step, per member:
+    episode ``ep`` ``(K,)``, step ``t`` (the agent counts the step), return ``ret`` (the
+    agent adds the reward), the signal ``rows`` ``(K, 10)`` to write, and the divergence
+    test's ``q_limit`` (:mod:`cdqn.training.divergence`)."""
+
+    ep: np.ndarray
+    t: np.ndarray
+    ret: np.ndarray
+    rows: np.ndarray
+    q_limit: float
+
+
 class PopulationAgent(Protocol):
     """K members of one agent stepped together (``train.population``), driven by
     :func:`cdqn.training.population_loop.train_population`; member ``i`` learns exactly what
@@ -83,16 +96,7 @@ class PopulationAgent(Protocol):
 
     def act(self, obs: np.ndarray) -> np.ndarray: ...
 
-    def update(
-        self,
-        actions: np.ndarray,
-        step: VectorStep,
-        ep: np.ndarray,
-        t: np.ndarray,
-        ret: np.ndarray,
-        rows: np.ndarray,
-        q_limit: float,
-    ) -> int: ...
+    def update(self, actions: np.ndarray, step: VectorStep, loop: LoopState) -> int: ...
 
     def select(self, keep: np.ndarray) -> None: ...
 

@@ -35,7 +35,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import njit
 
-from cdqn.agents.base import decide, draw_ahead, explore_ahead
+from cdqn.agents.base import LoopState, decide, draw_ahead, explore_ahead
 from cdqn.agents.episodic_replay import Transitions
 from cdqn.config import TrainConfig
 from cdqn.control.kernels import scheduled_lqr_step, state_space_step, static_gain_u
@@ -105,8 +105,8 @@ class StepLog(NamedTuple):
 
 
 class ControllerView(NamedTuple):
-    """A :class:`ControllerArrays` as the kernels take it (its arrays, not copies); ``x``
-    is the controller state ``x_c``."""
+    """The arrays of a :class:`ControllerArrays` as the kernels take them; ``x`` is the
+    controller state ``x_c``."""
 
     kind: int
     gains: np.ndarray
@@ -132,26 +132,17 @@ def batchable_controller(controller: RuntimeController) -> bool:
 class ControllerArrays:
     """``K`` copies of one runtime controller as arrays, stepped inside the update kernel.
 
-    ``gains`` ``(K, 3)``: static gains, or the H2 controller's last gains; ``loss_weight``
-    ``(K,)``; ``Ad, Bd, C, D`` and the states ``x`` ``(K, n)`` of a state-space controller
-    (empty otherwise); ``w_x, w_c, research, target`` of the scheduled H2 and its per-member
-    count of steps without an LQR solution, ``unsolved``.
+    :attr:`view` holds them as the kernels take them: ``gains`` ``(K, 3)``, static gains or
+    the H2 controller's last gains; ``loss_weight`` ``(K,)``; ``Ad, Bd, C, D`` and the
+    states ``x`` ``(K, n)`` of a state-space controller (empty otherwise); ``w_x, w_c,
+    research, target`` of the scheduled H2 and its per-member count of steps without an LQR
+    solution, ``unsolved``.
     """
 
-    kind: int
-    gains: np.ndarray
-    loss_weight: np.ndarray
-    Ad: np.ndarray
-    Bd: np.ndarray
-    C: np.ndarray
-    D: np.ndarray
-    x: np.ndarray
-    w_x: np.ndarray
-    w_c: float
-    research: bool
+    view: ControllerView
+    """The arrays the kernels step (not copies)."""
     reset_state: bool
-    unsolved: np.ndarray
-    target: np.ndarray
+    """Whether ``x`` returns to 0 at each episode start."""
 
     @classmethod
     def of(cls, controller: RuntimeController, k: int) -> ControllerArrays:
@@ -173,41 +164,37 @@ class ControllerArrays:
             gains[:] = controller.gains
             w_x, w_c, research = controller.w_x, controller.w_c, controller.research_map
             target = controller.target
-        return cls(
+        view = ControllerView(
             kind, gains, np.full(k, float(controller.loss_weight)), Ad, Bd, C, D,
-            np.zeros((k, n)), w_x, w_c, research, reset_state, np.zeros(k, dtype=np.int64),
-            target,
+            np.zeros((k, n)), w_x, w_c, research, target, np.zeros(k, dtype=np.int64),
         )  # fmt: skip
-
-    def view(self) -> ControllerView:
-        """The arrays the kernels step."""
-        return ControllerView(
-            self.kind, self.gains, self.loss_weight, self.Ad, self.Bd, self.C, self.D, self.x,
-            self.w_x, self.w_c, self.research, self.target, self.unsolved,
-        )  # fmt: skip
+        return cls(view, reset_state)
 
     def reset(self, i: int) -> None:
         """Episode start of member ``i``."""
         if self.reset_state:
-            self.x[i] = 0.0
+            self.view.x[i] = 0.0
 
     def state(self, i: int) -> np.ndarray | None:
         """Member ``i``'s controller state ``x_c`` (None for static controllers)."""
-        return self.x[i] if self.kind == STATE_SPACE else None
+        return self.view.x[i] if self.view.kind == STATE_SPACE else None
 
     def select(self, keep: np.ndarray) -> None:
-        self.gains, self.loss_weight = self.gains[keep], self.loss_weight[keep]
-        self.x, self.unsolved = self.x[keep], self.unsolved[keep]
+        v = self.view
+        self.view = v._replace(gains=v.gains[keep], loss_weight=v.loss_weight[keep],
+                               x=v.x[keep], unsolved=v.unsolved[keep])  # fmt: skip
 
     def state_dict(self, i: int) -> dict[str, Any]:
         """Member ``i``'s controller state: ``x_c``, the H2 controller's last gains, loss
         weight and unsolved count."""
-        return {"gains": self.gains[i].copy(), "loss_weight": float(self.loss_weight[i]),
-                "x": self.x[i].copy(), "unsolved": int(self.unsolved[i])}  # fmt: skip
+        v = self.view
+        return {"gains": v.gains[i].copy(), "loss_weight": float(v.loss_weight[i]),
+                "x": v.x[i].copy(), "unsolved": int(v.unsolved[i])}  # fmt: skip
 
     def load_state_dict(self, i: int, state: dict[str, Any]) -> None:
-        self.gains[i], self.loss_weight[i] = state["gains"], state["loss_weight"]
-        self.x[i], self.unsolved[i] = state["x"], state["unsolved"]
+        v = self.view
+        v.gains[i], v.loss_weight[i] = state["gains"], state["loss_weight"]
+        v.x[i], v.unsolved[i] = state["x"], state["unsolved"]
 
 
 class ExplorationPlan:
@@ -388,31 +375,23 @@ class ControlledPopulation:
         """Apply every member's pending ``W_1`` update (module docstring)."""
         _flush_kernel(self.net.w1t, tuple(self.deferred))
 
-    def update(
-        self,
-        actions: np.ndarray,
-        step: VectorStep,
-        ep: np.ndarray,
-        t: np.ndarray,
-        ret: np.ndarray,
-        rows: np.ndarray,
-        q_limit: float,
-    ) -> int:
+    def update(self, actions: np.ndarray, step: VectorStep, loop: LoopState) -> int:
         """One controlled step of every member on the environments' ``step``.
 
-        Writes each member's signal row (columns of :data:`cdqn.training.signals.COLUMNS`, episode
-        ``ep``, step ``t``) into ``rows``, then adds the reward to ``ret`` and counts the step
-        in ``t``.  :attr:`flags` tells the loop what needs its attention: :data:`CHECK` for
-        a step that fails the cheap divergence test (``u + x_e + loss`` finite and
-        ``max(|Q1|, |Q2|) ≤ q_limit``; a healthy step always passes it), :data:`DONE` for
-        the end of an episode, 0 otherwise; :attr:`loss_seen` records that a member has had a
-        step that passed.  Returns the number of flagged members.
+        Writes each member's signal row (columns of :data:`cdqn.training.signals.COLUMNS`,
+        episode ``loop.ep``, step ``loop.t``) into ``loop.rows``, then adds the reward to
+        ``loop.ret`` and counts the step in ``loop.t``.  :attr:`flags` tells the loop what
+        needs its attention: :data:`CHECK` for a step that fails the cheap divergence test
+        (``u + x_e + loss`` finite and ``max(|Q1|, |Q2|) ≤ loop.q_limit``; a healthy step
+        always passes it), :data:`DONE` for the end of an episode, 0 otherwise;
+        :attr:`loss_seen` records that a member has had a step that passed.  Returns the
+        number of flagged members.
         """
-        log = StepLog(ep, t, ret, rows, self.flags, self.loss_seen)
+        log = StepLog(loop.ep, loop.t, loop.ret, loop.rows, self.flags, self.loss_seen)
         return _update_kernel(
             tuple(self.net.params), tuple(self.passes), tuple(self.scratch),
             tuple(self.deferred), actions, tuple(step), tuple(self.settings),
-            tuple(self.controller.view()), self.x_e, tuple(log), q_limit,
+            tuple(self.controller.view), self.x_e, tuple(log), loop.q_limit,
         )  # fmt: skip
 
     def replay(self, k: int, tail: Transitions, repeats: int, q_limit: float) -> int:
@@ -426,7 +405,7 @@ class ControlledPopulation:
         return _replay_kernel(
             k, tuple(self.net.params), tuple(self.passes), tuple(self.scratch),
             tuple(self.deferred), tuple(tail), repeats, tuple(self.settings),
-            tuple(self.controller.view()), self.x_e, q_limit,
+            tuple(self.controller.view), self.x_e, q_limit,
         )  # fmt: skip
 
     def select(self, keep: np.ndarray) -> None:

@@ -37,7 +37,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import njit
 
-from cdqn.agents.base import EpsilonGreedy
+from cdqn.agents.base import EpsilonGreedy, LoopState
 from cdqn.agents.controlled_population import StepLog, flag_step
 from cdqn.agents.ddqn import step_settings
 from cdqn.agents.replay import StackedReplay
@@ -182,22 +182,13 @@ class DDQNPopulation:
         """The members' learning schedule and state as the kernels take them."""
         return Learning(self.steps, self.schedule, self.learn, self.last_loss, self.cached)
 
-    def update(
-        self,
-        actions: np.ndarray,
-        step: VectorStep,
-        ep: np.ndarray,
-        t: np.ndarray,
-        ret: np.ndarray,
-        rows: np.ndarray,
-        q_limit: float,
-    ) -> int:
+    def update(self, actions: np.ndarray, step: VectorStep, loop: LoopState) -> int:
         """One Double DQN step of every member on the environments' ``step``: signal rows
         into ``rows``, ``ret`` and ``t`` advanced, :attr:`flags` and :attr:`loss_seen` as in
         :meth:`cdqn.agents.controlled_population.ControlledPopulation.update`.  Returns the
         number of flagged members."""
         n, r = self.net, self.replay
-        log = tuple(StepLog(ep, t, ret, rows, self.flags, self.loss_seen))
+        log = tuple(StepLog(loop.ep, loop.t, loop.ret, loop.rows, self.flags, self.loss_seen))
         buffers = Buffers(r.obs, r.next_obs, r.actions, r.rewards, r.terminated, r.size, r.pos)
         _record_kernel(
             tuple(n.params), tuple(self.passes), tuple(self.scratch), actions, tuple(step),
@@ -211,7 +202,7 @@ class DDQNPopulation:
             double_dqn_learn(n, self.target, replay, self.idx, self.learn, self.hyper,
                              self.last_loss)  # fmt: skip
         return _learn_kernel(tuple(n.params), tuple(self.target.params), tuple(self.learning),
-                             tuple(step), log, q_limit)  # fmt: skip
+                             tuple(step), log, loop.q_limit)  # fmt: skip
 
     def select(self, keep: np.ndarray) -> None:
         """Keep only the members ``keep`` (indices, in that order)."""

@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from cdqn.agents.base import StepRecord
+from cdqn.agents.base import LoopState, StepRecord
 from cdqn.agents.controlled_population import CHECK, DONE, ControlledPopulation
 from cdqn.agents.episodic_replay import PopulationTail, Transitions, qualifies
 from cdqn.config import ReplayConfig
@@ -300,7 +300,8 @@ class _Batch:
         actions = agent.act(self.obs)
         out = self.venv.step(actions)
         rows = self.staging.next_block(self.members)
-        flagged = agent.update(actions, out, self.ep, self.t, self.ret, rows, ends.q_limit)
+        loop = LoopState(self.ep, self.t, self.ret, rows, ends.q_limit)
+        flagged = agent.update(actions, out, loop)
         if self.tail is not None:
             self.tail.append(self.obs, actions, out.reward, out.obs, out.terminated)
         self.obs = out.obs
