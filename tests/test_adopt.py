@@ -21,6 +21,7 @@ from omegaconf import OmegaConf
 
 from cdqn.cli import EXIT_CONFIG, check_overrides
 from cdqn.config import EnvConfig
+from cdqn.control.factory import make_controller
 from cdqn.envs import adopt, env_label, env_presets, env_sizes, make_env
 from cdqn.envs.adopt import GENERIC, command_line, shipped_weights
 from cdqn.network import NetworkSpec, QNetwork
@@ -448,6 +449,35 @@ def test_ntk_box_is_measured_on_discrete_observations(env_id: str) -> None:
     box = measured_box(conf, QNetwork(NetworkSpec(n_obs, n_actions, 64, "float64")))
     assert box is not None and box.source == "measured"
     assert 0 < box.theta1[0] <= box.theta1[1] and 0 < box.ratio[0] <= box.ratio[1]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("controller", ["hinf", "hinf_f"])
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        ["env.id=FrozenLake-v1"],
+        ["env.id=Taxi-v4"],
+        ["env.id=CliffWalking-v1", "env.max_episode_steps=100"],
+    ],
+)
+def test_default_designs_are_certified_on_one_hot_boxes(
+    overrides: list[str], controller: str
+) -> None:
+    """``python -m cdqn.train env.id=<a toy-text id>`` (default width, generic weights): the
+    box measured on one-hot observations gets a certified design."""
+    cfg = compose_config(
+        [*overrides, f"controller={controller}", "controller.synthesis.cache=false"]
+    )
+    conf = adopt(cfg).conf
+    env = make_env(conf.env)
+    n_obs, n_actions = env_sizes(env)
+    torch.manual_seed(conf.seed)
+    net = QNetwork(NetworkSpec(n_obs, n_actions, conf.network.width, conf.network.dtype))
+    box = measured_box(conf, net)
+    assert box is not None
+    setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr, box)
+    assert setup.source == "synthesized" and setup.design["certificate"]["passed"]
 
 
 # --- every entry point, on an id no preset names -----------------------------------------------
