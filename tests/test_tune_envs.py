@@ -30,6 +30,17 @@ def test_the_comparison_of_an_environment_without_a_solve_threshold_says_so() ->
     assert "| seeds ≥ -1.5 |" in table and "| ddqn | s | -1.50 ± 0.50 | 1 | 1/2 |" in table
 
 
+def test_the_comparison_says_by_how_much_a_design_reaches_or_falls_short() -> None:
+    """Double DQN 0.59 ± 0.07 (bar 0.52): a design at 0.43 falls short by 0.09, one at 0.60
+    reaches it by 0.08."""
+    base = {**summarise("ddqn", {1000: [0.52] * 4, 1001: [0.66] * 4}, 4, None), "study": "d"}
+    low = {**summarise("hinf_f", {1000: [0.43] * 4, 1001: [0.43] * 4}, 4, None), "study": "h"}
+    high = {**summarise("hinf", {1000: [0.6] * 4, 1001: [0.6] * 4}, 4, None), "study": "i"}
+    table = comparison_table([base, low, high], None, 4)
+    assert "hinf_f falls short of Double DQN's final score minus one std (0.52) by 0.09." in table
+    assert "hinf reaches Double DQN's final score minus one std (0.52) by 0.08." in table
+
+
 @pytest.mark.slow
 def test_a_tuple_observation_environment_without_cap_or_threshold_is_tuned_as_itself(
     tmp_path: Path,

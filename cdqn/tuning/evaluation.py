@@ -217,9 +217,10 @@ def comparison_table(rows: list[dict[str, Any]], threshold: float | None, episod
         bar = base["final_score"] - base["final_std"]
         for r in rows:
             if r["agent"] != "ddqn":
-                verdict = "reaches" if r["final_score"] >= bar else "falls short of"
+                gap = r["final_score"] - bar
+                verdict = "reaches" if gap >= 0 else "falls short of"
                 lines.append(f"\n{r['agent']} {verdict} Double DQN's final score minus one std "
-                             f"({bar:.2f}) by {r['final_score'] - bar:+.2f}.")  # fmt: skip
+                             f"({bar:.2f}) by {abs(gap):.2f}.")  # fmt: skip
     return "\n".join(lines)
 
 
