@@ -15,6 +15,8 @@ from cdqn.config import ConfigError
 from cdqn.envs import adopt
 from cdqn.training.run import run
 from cdqn.tuning.evaluation import comparison_table, summarise
+from cdqn.tuning.objective import score_text
+from cdqn.tuning.report import summary_text
 from tests.conftest import CONF_DIR
 from tests.test_tune import _runs, _store, _study
 
@@ -39,6 +41,27 @@ def test_the_comparison_says_by_how_much_a_design_reaches_or_falls_short() -> No
     table = comparison_table([base, low, high], None, 4)
     assert "hinf_f falls short of Double DQN's final score minus one std (0.52) by 0.09." in table
     assert "hinf reaches Double DQN's final score minus one std (0.52) by 0.08." in table
+
+
+def test_the_printed_scores_keep_the_digits_of_the_environments_return_scale() -> None:
+    """FrozenLake's returns lie in [0, 1]: its summary says 0.43 ± 0.27, not 0.4 ± 0.3
+    (which would hide the gap to Double DQN's 0.59 ± 0.07); CartPole's keep one decimal."""
+    assert score_text(0.432, 0.2694) == "0.43 ± 0.27"
+    assert score_text(0.6133) == "0.61"
+    assert score_text(0.012, 0.0109) == "0.012 ± 0.011"
+    assert score_text(0.0, 0.0) == "0.00 ± 0.00"
+    assert score_text(416.91, 106.67) == "416.9 ± 106.7" and score_text(-42.9) == "-42.9"
+    assert score_text(float("nan"), float("nan")) == "nan ± nan"
+    evaluation = {"seeds": list(range(1000, 1010)), "objective": 0.364, "final_score": 0.432,
+                  "final_std": 0.2694, "diverged": 0, "seconds": 45.0}  # fmt: skip
+    text = summary_text({
+        "study": "FrozenLake-v1-hinf_f", "counts": {"complete": 9, "pruned": 11, "infeasible": 0,
+        "failed": 0}, "episodes": 2000, "wall_seconds": 173.0, "parent_run": "p", "best_trial": 2,
+        "best_value": 0.4358, "best_final_score": 0.6133, "best_params": {}, "preset": "x.yaml",
+        "evaluation": evaluation,
+    })  # fmt: skip
+    assert "best trial 2: J = 0.44 (final MA100 0.61)" in text
+    assert "J = 0.36, final MA100 0.43 ± 0.27, 0 diverged (45 s)" in text
 
 
 @pytest.mark.slow

@@ -26,7 +26,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf, read_write
 
 from cdqn.records import Artifact, Metric
-from cdqn.tuning.objective import area, ma100, padded
+from cdqn.tuning.objective import area, ma100, padded, score_text
 
 log = logging.getLogger("cdqn.tune")
 RETURNS = Artifact.EVALUATION_RETURNS
@@ -59,8 +59,8 @@ def evaluate(study: Any, cfg: DictConfig, name: str) -> dict[str, Any]:
     tracker.metrics(run, {Metric.OBJECTIVE: row["objective"],
                           Metric.FINAL_SCORE: row["final_score"]})  # fmt: skip
     tracker.end(run, "FINISHED", "complete")
-    log.info("%s on seeds %s: J = %.2f, final MA100 = %.1f ± %.1f (%.0f s)", name, seeds,
-             row["objective"], row["final_score"], row["final_std"], out["seconds"])  # fmt: skip
+    log.info("%s on seeds %s: J = %.2f, final MA100 = %s (%.0f s)", name, seeds, row["objective"],
+             score_text(row["final_score"], row["final_std"]), out["seconds"])  # fmt: skip
     return out
 
 
@@ -237,7 +237,7 @@ def _figure(rows: list[dict[str, Any]], env: Any, out: Path) -> None:
             continue
         x = np.arange(1, len(r["curve"]) + 1)
         mean, std = np.asarray(r["curve"]), np.asarray(r["curve_std"])
-        ax.plot(x, mean, label=f"{r['agent']} ({r['final_score']:.1f} ± {r['final_std']:.1f})")
+        ax.plot(x, mean, label=f"{r['agent']} ({score_text(r['final_score'], r['final_std'])})")
         ax.fill_between(x, mean - std, mean + std, alpha=0.2)
     if env.solve_threshold is not None:
         ax.axhline(env.solve_threshold, color="grey", ls=":", lw=1)

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from cdqn.records import Artifact, Tag, folder
+from cdqn.tuning.objective import score_text
 
 log = logging.getLogger("cdqn.tune")
 
@@ -90,15 +91,17 @@ def summary_text(s: dict[str, Any]) -> str:
     if "stopped" in s:
         lines.append(f"study {s['stopped']}")
     if "best_trial" in s:
+        final = score_text(s["best_final_score"])
         lines.append(f"best trial {s['best_trial']}: J = {s['best_value']:.2f} (final MA100 "
-                     f"{s['best_final_score']:.1f}), {json.dumps(s['best_params'])}")  # fmt: skip
+                     f"{final}), {json.dumps(s['best_params'])}")  # fmt: skip
         lines.append(f"preset: {s['preset']}")
     for key in ("evaluation", "baseline"):
         if key in s:
             e = s[key]
             lines.append(f"{key} on fresh seeds {e['seeds'][0]}..{e['seeds'][-1]}: J = "
-                         f"{e['objective']:.2f}, final MA100 {e['final_score']:.1f} ± "
-                         f"{e.get('final_std', float('nan')):.1f}, {e['diverged']} diverged "
+                         f"{e['objective']:.2f}, final MA100 "
+                         f"{score_text(e['final_score'], e.get('final_std', float('nan')))}, "
+                         f"{e['diverged']} diverged "
                          f"({e['seconds']:.0f} s)")  # fmt: skip
     if s.get("comparison"):
         lines += [f"tuned agents on {s['comparison']['env']}, fresh seeds:",

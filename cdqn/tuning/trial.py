@@ -15,7 +15,7 @@ from cdqn.config import ConfigError
 from cdqn.control.errors import DesignError
 from cdqn.records import Metric
 from cdqn.tuning.clock import MEMBER_EPISODES
-from cdqn.tuning.objective import Progress, area, padded
+from cdqn.tuning.objective import Progress, area, padded, score_text
 from cdqn.tuning.report import log_design
 from cdqn.tuning.space import sample
 
@@ -223,6 +223,6 @@ class Trial:
         self.trial.set_user_attr("final_score", final)
         self.tracker.metrics(self.child, {Metric.OBJECTIVE: value, Metric.FINAL_SCORE: final})
         self.tracker.end(self.child, "FINISHED", "complete")
-        log.info("trial %d: J = %.2f, final MA100 = %.1f, %s", self.trial.number, value, final,
-                 params)  # fmt: skip
+        log.info("trial %d: J = %.2f, final MA100 = %s, %s", self.trial.number, value,
+                 score_text(final), params)  # fmt: skip
         return value
