@@ -18,7 +18,7 @@ from cdqn.tuning.objective import area, ma100, padded
 from cdqn.tuning.pruner import EpisodeMedianPruner
 from cdqn.tuning.report import summary_text
 from cdqn.tuning.settings import PrunerConfig, TuneSettings, episode_budget, warmup
-from cdqn.tuning.space import apply, discount_of, fit_to_observation, sample
+from cdqn.tuning.space import apply, discount_of, fit_to_budget, fit_to_observation, sample
 from cdqn.tuning.study import Study, _with_controller
 from tests.conftest import CONF_DIR
 from tests.helpers import run_cli
@@ -500,6 +500,25 @@ def test_radial_features_are_offered_only_where_the_observation_allows_them() ->
     six = fit_to_observation(space, bounded=True, n_features=6, max_features=4096)
     assert six["rbf"].choices == [None, 4]  # 4^6 = 4096, 6^6 = 46656
     assert "rbf" not in fit_to_observation(space, bounded=True, n_features=7, max_features=4096)
+
+
+def test_a_per_episode_schedule_explores_for_a_share_of_the_budget() -> None:
+    """ε from 1 to 0.01 (span 0.99) over at least a fifth of 2000 episodes: the per-episode
+    decrease is kept to ≤ 0.99 / 400; a short study (100 episodes) keeps the range as it is;
+    share 0 turns the bound off; the per-random-action range is never touched."""
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        space = OmegaConf.to_object(compose("tune").tune).space
+    kept = fit_to_budget(space, 2000, 0.2, 0.99)
+    assert kept["eps_dec_episode"].high == pytest.approx(0.99 / 400)
+    assert kept["eps_dec_episode"].low == space["eps_dec_episode"].low
+    assert kept["eps_dec_action"] == space["eps_dec_action"]
+    assert fit_to_budget(space, 100, 0.2, 0.99) == space  # 0.99 / 20 is above the range
+    assert fit_to_budget(space, 2000, 0.0, 0.99) == space
+    study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0))
+    for _ in range(40):
+        params = sample(trial := study.ask(), kept)
+        assert params.get("eps_dec_episode", 0.0) <= 0.99 / 400
+        study.tell(trial, 0.0)
 
 
 @pytest.mark.parametrize(("env", "choices"), [("acrobot", None), ("mountaincar", [None, 4, 6])])

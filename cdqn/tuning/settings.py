@@ -88,6 +88,9 @@ class TuneSettings:
     """Fresh seeds of the final evaluation of the best specification (0: none)."""
     eval_seed: int = 1000
     """First seed of the evaluation; its seeds must not overlap the trials' seeds."""
+    explore_share: float = 0.2
+    """The per-episode ε schedule reaches its floor no earlier than this share of the
+    episodes (:func:`cdqn.tuning.space.fit_to_budget`); 0: the space's range as written."""
     max_rbf_features: int = 256
     """The radial-basis dimension offers n centres per feature only where n^d stays within
     this: the network's first layer, and the time of a trial, grow with the features."""
@@ -159,6 +162,8 @@ def validate_tune(conf: TuneConfig) -> None:
                            ("worker", t.worker, 0)):  # fmt: skip
         if value < lo:
             errors.append(f"tune.{key}={value}: must be an integer >= {lo}")
+    if not 0 <= t.explore_share <= 1:
+        errors.append(f"tune.explore_share={t.explore_share}: must be a share in [0, 1]")
     if t.time_limit is not None and not t.time_limit >= 0:
         errors.append(f"tune.time_limit={t.time_limit}: must be a number of seconds >= 0, or null "
                       "for no limit")  # fmt: skip

@@ -39,7 +39,7 @@ from cdqn.tuning.evaluation import eval_processes, evaluate, write_comparison
 from cdqn.tuning.presets import write_preset
 from cdqn.tuning.report import log_design, plot_study
 from cdqn.tuning.settings import TuneConfig, episode_budget, validate_tune
-from cdqn.tuning.space import apply, fit_to_observation
+from cdqn.tuning.space import apply, fit_to_budget, fit_to_observation
 from cdqn.tuning.storage import WORKER_SEED_STRIDE, StudyLock, open_storage
 from cdqn.tuning.tracker import Tracker
 from cdqn.tuning.trial import STATUSES, run_trials
@@ -96,7 +96,10 @@ class Study:
         box = of_kind(env.observation_space, Box)
         bounded = bool(np.all(np.isfinite(box.low)) and np.all(np.isfinite(box.high)))
         env.close()
-        return fit_to_observation(space, bounded, int(box.shape[0]), most)
+        space = fit_to_observation(space, bounded, int(box.shape[0]), most)
+        train = self.conf.train
+        span = float(train.eps_start) - float(train.eps_end)
+        return fit_to_budget(space, self.episodes, self.conf.tune.explore_share, span)
 
     # the configuration of a specification -----------------------------------------
 
