@@ -163,7 +163,8 @@ SWEEP = [
 @pytest.mark.slow
 def test_a_batched_sweep_stores_what_one_job_per_seed_stores(tmp_path: Path) -> None:
     """The sweep through the real CLI (joblib launcher), batched, and again one job per
-    seed (``hydra.sweeper.max_population=1``) into another store: every seed is its own
+    seed (``hydra.sweeper.max_population=1``; Hydra's basic launcher runs the six jobs one
+    after the other in the command's own process) into another store: every seed is its own
     FINISHED run with its own summary line, with the returns and signal rows of the
     unbatched run of that seed; started again with ``tracking.skip_finished=true``, the
     batched sweep skips every member."""
@@ -171,7 +172,8 @@ def test_a_batched_sweep_stores_what_one_job_per_seed_stores(tmp_path: Path) -> 
     out = {}
     for name, folder in stores.items():
         folder.mkdir()
-        extra = ["hydra.sweeper.max_population=1"] if name == "single" else []
+        single = ["hydra.sweeper.max_population=1", "hydra/launcher=basic"]
+        extra = single if name == "single" else []
         proc = run_cli("cdqn.train", [*SWEEP, *extra, "hydra.sweep.dir=multirun"], folder, 900)
         assert proc.returncode == 0, proc.stderr[-3000:]
         out[name] = proc.stdout + proc.stderr
