@@ -502,6 +502,19 @@ def test_radial_features_are_offered_only_where_the_observation_allows_them() ->
     assert "rbf" not in fit_to_observation(space, bounded=True, n_features=7, max_features=4096)
 
 
+def test_a_wide_one_hot_observation_is_not_offered_the_dense_map() -> None:
+    """[−1, 1] turns a one-hot vector's zeros into −1: offered only up to max_features."""
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        space = OmegaConf.to_object(compose("tune").tune).space
+    assert space["normalize"].choices == [False, True]
+    wide = fit_to_observation(space, True, n_features=500, max_features=256, one_hot=True)
+    assert wide["normalize"].choices == [False]
+    narrow = fit_to_observation(space, True, n_features=16, max_features=256, one_hot=True)
+    assert narrow["normalize"].choices == [False, True]
+    box = fit_to_observation(space, True, n_features=500, max_features=256, one_hot=False)
+    assert box["normalize"].choices == [False, True]
+
+
 def test_a_per_episode_schedule_explores_for_a_share_of_the_budget() -> None:
     """ε from 1 to 0.01 (span 0.99) over at least a fifth of 2000 episodes: the per-episode
     decrease is kept to ≤ 0.99 / 400; a short study (100 episodes) keeps the range as it is;

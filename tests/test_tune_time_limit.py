@@ -96,6 +96,21 @@ def test_the_clock_stops_when_one_more_trial_and_the_evaluation_would_overrun() 
     assert recorded_stop(study) is None  # a new invocation forgets the last one's stop
 
 
+def test_a_running_trial_is_overdue_once_the_limit_passed_and_a_trial_is_complete() -> None:
+    study = optuna.create_study()
+    clock = StudyClock(study, 10.0, EvaluationSize(2, 1, 100, 1), joined=False)
+    assert not clock.overdue()  # within the limit
+    clock.start -= 20.0
+    assert not clock.overdue()  # past it, but nothing complete to evaluate: the trial ends
+    study.add_trial(_trial(0, 5.0, 200, TrialState.PRUNED))
+    clock._asked = -float("inf")
+    assert not clock.overdue()
+    study.add_trial(_trial(1, 5.0, 200, TrialState.COMPLETE))
+    clock._asked = -float("inf")
+    assert clock.overdue()
+    assert not StudyClock(study, None, EvaluationSize(2, 1, 100, 1), joined=False).overdue()
+
+
 @pytest.mark.parametrize(
     ("value", "expected"),
     [("-5", "tune.time_limit=-5.0: must be a number of seconds >= 0, or null for no limit"),

@@ -16,7 +16,9 @@ from cdqn.tuning.settings import ParamSpec
 log = logging.getLogger("cdqn.tune")
 
 RBF_PATH = "env.rbf_centres"
-"""The dimension whose choices depend on the observation (:func:`fit_to_observation`)."""
+"""A dimension whose choices depend on the observation (:func:`fit_to_observation`)."""
+NORMALIZE_PATH = "env.normalize"
+"""The [−1, 1] map: not offered for a wide one-hot observation (:func:`fit_to_observation`)."""
 EPS_PATH = "train.eps_dec"
 """The ε decrease; its per-episode range depends on the episode budget (:func:`fit_to_budget`)."""
 
@@ -70,22 +72,39 @@ def discount_of(h: float) -> float:
 
 
 def fit_to_observation(
-    space: dict[str, ParamSpec], bounded: bool, n_features: int, max_features: int
+    space: dict[str, ParamSpec],
+    bounded: bool,
+    n_features: int,
+    max_features: int,
+    one_hot: bool = False,
 ) -> dict[str, ParamSpec]:
-    """``space`` with the radial-basis dimension (``env.rbf_centres``) kept to the choices the
-    observation allows: none unless every observed feature is bounded, and ``n`` centres per
-    feature only where ``n^d <= max_features``.  A dimension left with one choice is dropped
-    (the configuration's value stands)."""
+    """``space`` with the dimensions that depend on the observation kept to the choices it
+    allows.  Radial basis features (``env.rbf_centres``): none unless every observed feature
+    is bounded, and ``n`` centres per feature only where ``n^d <= max_features``.  The
+    [−1, 1] map (``env.normalize``) of a one-hot observation (:class:`cdqn.envs.OneHot`):
+    only where ``d <= max_features``, since the map sends the d − k zeros of a one-hot
+    vector to −1 and the first layer then reads d inputs per sample instead of k (Taxi-v4:
+    500 against 1).  A dimension left with one choice is dropped
+    (the configuration's value stands, or the one choice left where the configuration's is
+    not allowed)."""
     out = dict(space)
     for name, p in space.items():
-        if p.path != RBF_PATH or p.choices is None:
+        if p.choices is None or p.path not in (RBF_PATH, NORMALIZE_PATH):
             continue
-        allowed = [c for c in p.choices
-                   if c is None or (bounded and int(c) ** n_features <= max_features)]  # fmt: skip
+        if p.path == RBF_PATH:
+            allowed = [
+                c
+                for c in p.choices
+                if c is None or (bounded and int(c) ** n_features <= max_features)
+            ]
+        else:
+            allowed = [c for c in p.choices if not (c and one_hot and n_features > max_features)]
         if len(allowed) < len(p.choices):
             log.info("tune.space.%s: choices %s (the observation allows %s)", name,
                      list(p.choices), allowed)  # fmt: skip
-        if len(allowed) <= 1:
+        if len(allowed) == 1 and p.path == NORMALIZE_PATH:
+            out[name] = dataclasses.replace(p, choices=allowed)
+        elif len(allowed) <= 1:
             del out[name]
         else:
             out[name] = dataclasses.replace(p, choices=allowed)

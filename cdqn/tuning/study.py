@@ -87,7 +87,7 @@ class Study:
         import numpy as np
         from gymnasium.spaces import Box
 
-        from cdqn.envs import RadialFeatures, make_env
+        from cdqn.envs import OneHot, RadialFeatures, make_env
 
         most = min(self.conf.tune.max_rbf_features, RadialFeatures.MAX_FEATURES)
         env_cfg = copy.deepcopy(self.conf.env)
@@ -95,8 +95,9 @@ class Study:
         env = make_env(env_cfg)
         box = of_kind(env.observation_space, Box)
         bounded = bool(np.all(np.isfinite(box.low)) and np.all(np.isfinite(box.high)))
+        one_hot = OneHot.encodes(env.unwrapped.observation_space)
         env.close()
-        space = fit_to_observation(space, bounded, int(box.shape[0]), most)
+        space = fit_to_observation(space, bounded, int(box.shape[0]), most, one_hot)
         train = self.conf.train
         span = float(train.eps_start) - float(train.eps_end)
         return fit_to_budget(space, self.episodes, self.conf.tune.explore_share, span)

@@ -22,6 +22,8 @@ from cdqn.tuning.space import sample
 log = logging.getLogger("cdqn.tune")
 STATUSES = ("complete", "pruned", "infeasible", "failed")
 """``trial_status`` of a trial's MLflow run."""
+OVERDUE = -1
+"""``train_population``'s pruning episode for a trial stopped by the study's time limit."""
 WAIT_SECONDS = 2.0
 """Worker 0 polls the storage this often while other workers' trials run."""
 
@@ -88,8 +90,10 @@ def train_population(
     study_obj: Any, cfg: DictConfig, report: Callable[[int, float], bool] | None = None
 ) -> tuple[Progress, Any, int | None]:
     """Train ``cfg``'s population; ``report(n, J_n)`` is called each ``interval`` episodes and
-    returns True to prune.  Returns the progress, the result and the episode at which it was
-    pruned (None: not pruned)."""
+    returns True to prune.  With ``report``, the population also stops when the study's
+    clock is overdue (:meth:`cdqn.tuning.clock.StudyClock.overdue`).  Returns the progress,
+    the result and the episode at which it was pruned (None: not pruned; :data:`OVERDUE`:
+    stopped by the clock)."""
     from cdqn.training.divergence import is_divergence
     from cdqn.training.run import run_population
 
@@ -97,7 +101,14 @@ def train_population(
     prog = Progress(seeds)
     interval = study_obj.conf.tune.pruner.interval
     episodes = int(cfg.train.episodes)
-    state: dict[str, Any] = {"next": interval, "pruned": None}
+    state: dict[str, Any] = {"next": interval, "pruned": None, "overdue": False}
+    clock = getattr(study_obj, "clock", None)
+
+    def should_stop() -> bool:
+        if state["pruned"] is not None or state["overdue"]:
+            return True
+        state["overdue"] = report is not None and clock is not None and clock.overdue()
+        return bool(state["overdue"])
 
     def observe(member: Any) -> None:
         if is_divergence(member.status, member.reason):
@@ -114,12 +125,12 @@ def train_population(
             if report(n, value):
                 state["pruned"] = n
 
-    result = run_population(
-        cfg, progress=False, observe=observe, should_stop=lambda: state["pruned"] is not None
-    )
+    result = run_population(cfg, progress=False, observe=observe, should_stop=should_stop)
     for s, r in zip(seeds, result.members, strict=False):  # members in seed order
         if is_divergence(r.status, r.reason):
             prog.failed.add(s)
+    if state["overdue"] and state["pruned"] is None:
+        state["pruned"] = OVERDUE
     return prog, result, state["pruned"]
 
 
@@ -196,11 +207,20 @@ class Trial:
         self.trial.set_user_attr("runs", ids)
         played = sum(len(r) for r in prog.returns.values())
         self.trial.set_user_attr(MEMBER_EPISODES, played)  # the study clock's measure
-        if result.signum is not None:
+        if result.signum is not None and pruned_at != OVERDUE:
             self.tracker.nest(self.child, ids)
             self._end("KILLED", "failed", "interrupted by a signal", status="interrupted")
             raise KeyboardInterrupt
         self.tracker.metrics(self.child, {"diverged_members": len(prog.failed)})
+        if pruned_at == OVERDUE:
+            reason = (f"stopped after {min(len(r) for r in prog.returns.values())} episodes: "
+                      f"the study's time limit ({self.s.conf.tune.time_limit:g} s) "
+                      "passed")  # fmt: skip
+            self.tracker.nest(self.child, ids, reason)
+            self.trial.set_user_attr("reason", reason)
+            self._end("KILLED", "pruned", reason, status="pruned")
+            log.info("trial %d %s", self.trial.number, reason)
+            raise optuna.TrialPruned(reason)
         if pruned_at is not None:
             reason = (f"pruned at episode {pruned_at}: J over the first {pruned_at} episodes "
                       f"= {self.reported[pruned_at]:.2f}, below the median of the "
