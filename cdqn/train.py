@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import math
 import sys
+from typing import TYPE_CHECKING, Any
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
@@ -28,15 +29,29 @@ from omegaconf import DictConfig
 from cdqn.cli import resume_conflicts, start_hydra
 from cdqn.config import CONF_DIR, ConfigError, register_configs, resolve_tracking_uri
 from cdqn.control.errors import DesignError
-from cdqn.training.callbacks import record_job
-from cdqn.training.result import EXIT_OUTAGE, OUTAGE, RunResult, solve_text, summary_text
-from cdqn.training.run import run
-from cdqn.training.tracking import TrackingOutage
+
+if TYPE_CHECKING:
+    from cdqn.training.result import RunResult
+    from cdqn.training.run import run
 
 __all__ = ["main", "run", "RunResult"]
 
 log = logging.getLogger("cdqn")
 register_configs()
+
+
+def __getattr__(name: str) -> Any:
+    """``run`` and ``RunResult``, imported on first use: torch and MLflow are imported only
+    once the command line has passed its checks, so that a refused one answers at once."""
+    if name == "run":
+        from cdqn.training.run import run
+
+        return run
+    if name == "RunResult":
+        from cdqn.training.result import RunResult
+
+        return RunResult
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _is_multirun() -> bool:
@@ -48,6 +63,11 @@ def _is_multirun() -> bool:
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
 def main(cfg: DictConfig) -> float:
+    from cdqn.training.callbacks import record_job
+    from cdqn.training.result import EXIT_OUTAGE, OUTAGE, solve_text, summary_text
+    from cdqn.training.run import run
+    from cdqn.training.tracking import TrackingOutage
+
     multirun = _is_multirun()
     try:
         if cfg.get("resume"):
