@@ -96,17 +96,20 @@ def test_the_clock_stops_when_one_more_trial_and_the_evaluation_would_overrun() 
     assert recorded_stop(study) is None  # a new invocation forgets the last one's stop
 
 
-def test_a_running_trial_is_overdue_once_the_limit_passed_and_a_trial_is_complete() -> None:
+def test_a_running_trial_is_overdue_when_the_evaluation_would_end_past_the_limit() -> None:
     study = optuna.create_study()
-    clock = StudyClock(study, 10.0, EvaluationSize(2, 1, 100, 1), joined=False)
-    assert not clock.overdue()  # within the limit
-    clock.start -= 20.0
-    assert not clock.overdue()  # past it, but nothing complete to evaluate: the trial ends
+    limit = 100.0
+    clock = StudyClock(study, limit, EvaluationSize(2, 1, 100, 1), joined=False)
+    clock.start -= 500.0
+    assert not clock.overdue()  # past the limit, but nothing complete to evaluate
     study.add_trial(_trial(0, 5.0, 200, TrialState.PRUNED))
     clock._asked = -float("inf")
     assert not clock.overdue()
-    study.add_trial(_trial(1, 5.0, 200, TrialState.COMPLETE))
+    study.add_trial(_trial(1, 5.0, 200, TrialState.COMPLETE))  # τ = 0.025 s: T_eval 5 s + start
+    clock.start = time.time() - (limit - 5.0 - START_ALLOWANCE - 2.0)
     clock._asked = -float("inf")
+    assert not clock.overdue()  # the evaluation still ends 2 s before the limit
+    clock.start -= 4.0
     assert clock.overdue()
     assert not StudyClock(study, None, EvaluationSize(2, 1, 100, 1), joined=False).overdue()
 

@@ -20,9 +20,10 @@ and starts no trial when ``elapsed + T_rest > tune.time_limit``:
   τ · ⌈eval_seeds / processes⌉ · episodes + T_start; twice that with a ``tune.baseline``,
   which trains the same seeds again.
 
-A trial still training when the limit has passed stops at its members' next episode ends
-and is pruned (:meth:`StudyClock.overdue`), once the study has a complete trial to evaluate;
-the first trials of a study whose limit is too small for one trial still end.
+A trial still training when the evaluation would no longer end within the limit
+(elapsed + T_eval > limit) stops at its members' next episode ends and is pruned
+(:meth:`StudyClock.overdue`), once the study has a complete trial to evaluate; the first
+trials of a study whose limit is too small for one trial still end.
 
 A population trains its members side by side in one process, so a trial of K members and
 an evaluation process of K members cost alike per member-episode.
@@ -146,24 +147,28 @@ class StudyClock:
             study.set_user_attr(START, time.time())
             study.set_user_attr(STOP, None)
         self.start = float(study.user_attrs[START])
-        self._asked, self._complete = -math.inf, False
+        self._asked: float = -math.inf
+        self._eval: float | None = None
 
     def elapsed(self) -> float:
         return time.time() - self.start
 
     def overdue(self) -> bool:
-        """Whether a running trial is to stop: the limit has passed and the study holds a
-        complete trial (asked at every step: the storage is read at most once a second)."""
-        if self.limit is None or self.elapsed() <= self.limit:
+        """Whether a running trial is to stop so that the evaluation still ends within the
+        limit: the study holds a complete trial, and elapsed + T_eval > limit (asked at every
+        step: the storage is read at most once a second)."""
+        if self.limit is None:
             return False
         now = time.monotonic()
         if now - self._asked >= 1.0:
             from optuna.trial import TrialState
 
             self._asked = now
-            states = (tr.state for tr in self.study.get_trials(deepcopy=False))
-            self._complete = any(s == TrialState.COMPLETE for s in states)
-        return self._complete
+            trials = self.study.get_trials(deepcopy=False)
+            est = estimate(trials, self.size)
+            complete = any(tr.state == TrialState.COMPLETE for tr in trials)
+            self._eval = est.evaluation if complete and est is not None else None
+        return self._eval is not None and self.elapsed() + self._eval > self.limit
 
     def check(self) -> Stop | None:
         """A :class:`Stop` when one more trial and the evaluation would end past the limit
