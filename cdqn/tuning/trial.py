@@ -214,8 +214,8 @@ class Trial:
         self.tracker.metrics(self.child, {"diverged_members": len(prog.failed)})
         if pruned_at == OVERDUE:
             reason = (f"stopped after {min(len(r) for r in prog.returns.values())} episodes: "
-                      f"the study's time limit ({self.s.conf.tune.time_limit:g} s) "
-                      "passed")  # fmt: skip
+                      "the evaluation would otherwise end past the study's time limit "
+                      f"({self.s.conf.tune.time_limit:g} s)")  # fmt: skip
             self.tracker.nest(self.child, ids, reason)
             self.trial.set_user_attr("reason", reason)
             self._end("KILLED", "pruned", reason, status="pruned")
