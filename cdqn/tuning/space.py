@@ -84,9 +84,9 @@ def fit_to_observation(
     [−1, 1] map (``env.normalize``) of a one-hot observation (:class:`cdqn.envs.OneHot`):
     only where ``d <= max_features``, since the map sends the d − k zeros of a one-hot
     vector to −1 and the first layer then reads d inputs per sample instead of k (Taxi-v4:
-    500 against 1).  A dimension left with one choice is dropped
-    (the configuration's value stands, or the one choice left where the configuration's is
-    not allowed)."""
+    500 against 1).  A radial-basis dimension left with one choice is dropped (the
+    configuration's value stands); the map's keeps its one choice, which may differ from the
+    configuration's."""
     out = dict(space)
     for name, p in space.items():
         if p.choices is None or p.path not in (RBF_PATH, NORMALIZE_PATH):

@@ -207,7 +207,7 @@ class Trial:
         self.trial.set_user_attr("runs", ids)
         played = sum(len(r) for r in prog.returns.values())
         self.trial.set_user_attr(MEMBER_EPISODES, played)  # the study clock's measure
-        if result.signum is not None and pruned_at != OVERDUE:
+        if result.signum is not None:
             self.tracker.nest(self.child, ids)
             self._end("KILLED", "failed", "interrupted by a signal", status="interrupted")
             raise KeyboardInterrupt
