@@ -118,8 +118,8 @@ bound: measured on one core (width 2500, 32 samples), a minibatch of 36 inputs a
 nonzero takes 0.97 ms against 3.3 ms unrolled (a ratio of 1.0 per multiply-add), one of
 one-hot states of 500 takes 0.53 ms against about 150 ms.  With 4, a minibatch goes the
 sparse route where under a sixth (36 inputs) to a quarter (many) of its inputs are nonzero,
-as with one-hot states; Mountain
-car's radial features, a quarter nonzero, stay on the unrolled route."""
+as with one-hot states; Mountain car's radial features, a quarter nonzero, stay on the
+unrolled route."""
 
 
 @njit(cache=True)
