@@ -24,14 +24,11 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import hydra
 import numpy as np
-import pandas as pd
 import yaml
-from mlflow.entities import Metric, RunTag
-from mlflow.exceptions import MlflowException
-from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
 
 from cdqn.cli import check_evaluate, start_hydra
@@ -46,11 +43,13 @@ from cdqn.config import (
     to_schema,
     validate_evaluate,
 )
-from cdqn.envs import make_env
-from cdqn.network import FastTwoLayer, QNetwork, load_network
 from cdqn.records import Artifact, Tag, folder
 from cdqn.records import Metric as M
-from cdqn.training.tracking import CONFIG_ARTIFACT, TrackingError, check_tracking
+
+if TYPE_CHECKING:  # torch, gymnasium and MLflow load when a run is evaluated, not to refuse one
+    from mlflow.tracking import MlflowClient
+
+    from cdqn.network import QNetwork
 
 log = logging.getLogger("cdqn")
 register_configs()
@@ -85,6 +84,9 @@ def greedy_returns(
     net: QNetwork, env_cfg: EnvConfig, episodes: int, seed: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """Returns and lengths of ``episodes`` greedy episodes, episode ``i`` seeded ``seed + i``."""
+    from cdqn.envs import make_env
+    from cdqn.network import FastTwoLayer
+
     env = make_env(env_cfg)
     fast = FastTwoLayer(net)
     returns, lengths = np.zeros(episodes), np.zeros(episodes, dtype=np.int64)
@@ -106,6 +108,11 @@ def greedy_returns(
 def evaluate(cfg: EvaluateConfig) -> EvalResult:
     """Evaluate run ``cfg.run_id`` (module docstring); log to the run when ``cfg.log``."""
     validate_evaluate(cfg)
+    from mlflow.exceptions import MlflowException
+    from mlflow.tracking import MlflowClient
+
+    from cdqn.network import load_network
+    from cdqn.training.tracking import TrackingError, check_tracking
 
     uri = resolve_tracking_uri(cfg.tracking.uri)
     check_tracking(uri, cfg.tracking.timeout)
@@ -139,6 +146,8 @@ def _env_config(client: MlflowClient, run_id: str, tmp: Path) -> EnvConfig:
     """The environment the run trained on: the ``env`` of its ``config.yaml`` as stored
     (adopted when the run started: id with its module, ``env.kwargs``, cap), else rebuilt
     from its params."""
+    from cdqn.training.tracking import CONFIG_ARTIFACT
+
     try:
         path = client.download_artifacts(run_id, CONFIG_ARTIFACT, str(tmp))
         stored = OmegaConf.load(path)
@@ -165,6 +174,9 @@ def _env_config(client: MlflowClient, run_id: str, tmp: Path) -> EnvConfig:
 
 
 def _log(client: MlflowClient, result: EvalResult, params: dict[str, str]) -> None:
+    import pandas as pd
+    from mlflow.entities import Metric, RunTag
+
     step = int(params.get("train.episodes", "0"))
     ts = int(time.time() * 1000)
     values = {
