@@ -43,6 +43,16 @@ def test_the_comparison_says_by_how_much_a_design_reaches_or_falls_short() -> No
     assert "hinf reaches Double DQN's final score minus one std (0.52) by 0.08." in table
 
 
+def test_the_comparison_keeps_three_decimals_where_the_returns_are_below_a_tenth() -> None:
+    """FrozenLake8x8: Double DQN 0.020 ± 0.024 and a design at 0.003 show as such, with the
+    bar (−0.004) and the margin (0.007), not as 0.02 ± 0.02, (−0.00) and 0.01."""
+    base = {**summarise("ddqn", {1000: [-0.004] * 4, 1001: [0.044] * 4}, 4, None), "study": "d"}
+    low = {**summarise("hinf_f", {1000: [0.003] * 4, 1001: [0.003] * 4}, 4, None), "study": "h"}
+    table = comparison_table([base, low], None, 4)
+    assert "| ddqn | d | 0.020 ± 0.024 | n/a | n/a | 0.020 |" in table
+    assert "hinf_f reaches Double DQN's final score minus one std (-0.004) by 0.007." in table
+
+
 def test_the_printed_scores_keep_the_digits_of_the_environments_return_scale() -> None:
     """FrozenLake's returns lie in [0, 1]: its summary says 0.43 ± 0.27, not 0.4 ± 0.3
     (which would hide the gap to Double DQN's 0.59 ± 0.07); CartPole's keep one decimal."""

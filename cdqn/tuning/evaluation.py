@@ -26,7 +26,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf, read_write
 
 from cdqn.records import Artifact, Metric
-from cdqn.tuning.objective import area, ma100, padded, score_text
+from cdqn.tuning.objective import area, decimals, ma100, padded, score_text
 
 log = logging.getLogger("cdqn.tune")
 RETURNS = Artifact.EVALUATION_RETURNS
@@ -206,12 +206,15 @@ def comparison_table(rows: list[dict[str, Any]], threshold: float | None, episod
         f"solve episode (median) | {reach} | J (area, {episodes} episodes) |"
     )
     lines = [head, "|---|---|---|---|---|---|"]
+    # at least two decimals; three where the returns are below 0.1 (a goal rarely reached)
+    p = max(2, decimals(*(v for r in rows for v in (r["final_score"], r["final_std"]))))
+    pj = max(2, decimals(*(r["objective"] for r in rows)))
     for r in rows:
         solve = "n/a" if r["solve_median"] is None else f"{r['solve_median']:.0f}"
         solved = "n/a" if threshold is None else f"{r['solved']}/{len(r['finals'])}"
-        lines.append(f"| {r['agent']} | {r['study']} | {r['final_score']:.2f} ± "
-                     f"{r['final_std']:.2f} | {solve} | {solved} | "
-                     f"{r['objective']:.2f} |")  # fmt: skip
+        lines.append(f"| {r['agent']} | {r['study']} | {r['final_score']:.{p}f} ± "
+                     f"{r['final_std']:.{p}f} | {solve} | {solved} | "
+                     f"{r['objective']:.{pj}f} |")  # fmt: skip
     base = next((r for r in rows if r["agent"] == "ddqn"), None)
     if base is not None:
         bar = base["final_score"] - base["final_std"]
@@ -220,7 +223,7 @@ def comparison_table(rows: list[dict[str, Any]], threshold: float | None, episod
                 gap = r["final_score"] - bar
                 verdict = "reaches" if gap >= 0 else "falls short of"
                 lines.append(f"\n{r['agent']} {verdict} Double DQN's final score minus one std "
-                             f"({bar:.2f}) by {abs(gap):.2f}.")  # fmt: skip
+                             f"({bar:.{p}f}) by {abs(gap):.{p}f}.")  # fmt: skip
     return "\n".join(lines)
 
 

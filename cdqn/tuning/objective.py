@@ -38,13 +38,19 @@ def area(curves: list[list[float]]) -> float:
     return float(np.mean([ma100(r).mean() for r in curves]))
 
 
-def score_text(*values: float) -> str:
-    """Returns as the printed summaries show them (``mean`` or ``mean ± std``), to the scale
-    of the environment's returns: one decimal from 10 on (CartPole's 416.9 ± 106.7), two
-    from 0.1 (FrozenLake's 0.43 ± 0.27), three below."""
+def decimals(*values: float) -> int:
+    """Decimal places that show returns at the scale of ``values``: one from 10 on
+    (CartPole's 416.9 ± 106.7), two from 0.1 (FrozenLake's 0.43 ± 0.27), three below
+    (FrozenLake8x8's 0.020 ± 0.024)."""
     finite = [abs(v) for v in values if np.isfinite(v)]
     top = max(finite, default=0.0)
-    places = 1 if top >= 10 else 2 if top >= 0.1 or top == 0 else 3
+    return 1 if top >= 10 else 2 if top >= 0.1 or top == 0 else 3
+
+
+def score_text(*values: float) -> str:
+    """Returns as the printed summaries show them (``mean`` or ``mean ± std``), with the
+    :func:`decimals` of their scale."""
+    places = decimals(*values)
     return " ± ".join(f"{v:.{places}f}" for v in values)
 
 
