@@ -212,21 +212,18 @@ class Trial:
             self._end("KILLED", "failed", "interrupted by a signal", status="interrupted")
             raise KeyboardInterrupt
         self.tracker.metrics(self.child, {"diverged_members": len(prog.failed)})
-        if pruned_at == OVERDUE:
-            reason = (f"stopped after {min(len(r) for r in prog.returns.values())} episodes: "
-                      "the evaluation would otherwise end past the study's time limit "
-                      f"({self.s.conf.tune.time_limit:g} s)")  # fmt: skip
-            self.tracker.nest(self.child, ids, reason)
-            self.trial.set_user_attr("reason", reason)
-            self._end("KILLED", "pruned", reason, status="pruned")
-            log.info("trial %d %s", self.trial.number, reason)
-            raise optuna.TrialPruned(reason)
         if pruned_at is not None:
-            reason = (f"pruned at episode {pruned_at}: J over the first {pruned_at} episodes "
-                      f"= {self.reported[pruned_at]:.2f}, below the median of the "
-                      "complete trials at that episode")  # fmt: skip
+            if pruned_at == OVERDUE:
+                reason = (f"stopped after {min(len(r) for r in prog.returns.values())} "
+                          "episodes: the evaluation would otherwise end past the study's time "
+                          f"limit ({self.s.conf.tune.time_limit:g} s)")  # fmt: skip
+                log.info("trial %d %s", self.trial.number, reason)
+            else:
+                reason = (f"pruned at episode {pruned_at}: J over the first {pruned_at} "
+                          f"episodes = {self.reported[pruned_at]:.2f}, below the median of "
+                          "the complete trials at that episode")  # fmt: skip
+                self.trial.set_user_attr("pruned_at", pruned_at)
             self.tracker.nest(self.child, ids, reason)
-            self.trial.set_user_attr("pruned_at", pruned_at)
             self.trial.set_user_attr("reason", reason)
             self._end("KILLED", "pruned", reason, status="pruned")
             raise optuna.TrialPruned(reason)
