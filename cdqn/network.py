@@ -100,6 +100,18 @@ class QNetwork(nn.Module):
         return self.out(torch.relu(self.hidden(x)))
 
 
+def gradient_step(net: nn.Module, loss: torch.Tensor, lr: float) -> None:
+    """One step of plain gradient descent on ``loss``, θ ← θ − α ∂L/∂θ (paper Eq.
+    theta_update, Sec. 2.1; ``torch.optim.SGD`` without momentum or decay takes the same step,
+    ``p.add_(grad, alpha=-lr)``, but its first use imports ``torch._dynamo``, two seconds of
+    every run's start).  The gradients are returned, not stored on the parameters."""
+    params = [p for p in net.parameters() if p.requires_grad]
+    grads = torch.autograd.grad(loss, params)
+    with torch.no_grad():
+        for p, g in zip(params, grads, strict=True):
+            p.add_(g, alpha=-lr)
+
+
 def ntk(net: QNetwork, x: torch.Tensor, a: int, y: torch.Tensor, b: int) -> float:
     """Closed-form NTK Θ((x, a), (y, b)) of :class:`QNetwork` (module docstring)."""
     w1, b1 = net.hidden.weight.detach(), net.hidden.bias.detach()

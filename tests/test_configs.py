@@ -104,7 +104,6 @@ def test_double_dqn_takes_its_environments_settings_unless_overridden() -> None:
         env.close()
         agent = make_agent(conf.controller, conf.train, net, None, np.random.default_rng(0))
         assert isinstance(agent, DDQNAgent)
-        assert agent.optimizer.param_groups[0]["lr"] == agent.lr
         return agent.lr, agent.cfg.target_update, conf.env.normalize
 
     assert settings("env=cartpole") == (5e-5, 500, False)  # the paper's α and observations

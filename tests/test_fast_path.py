@@ -21,6 +21,7 @@ from cdqn.network import (
     NetworkSpec,
     QNetwork,
     StackedTwoLayer,
+    gradient_step,
     load_network,
     save_network,
 )
@@ -32,6 +33,24 @@ def _nets(k: int, n_obs: int = 4, width: int = 300) -> list[QNetwork]:
         torch.manual_seed(seed)
         nets.append(QNetwork(NetworkSpec(n_obs, 2, width)))
     return nets
+
+
+def test_the_gradient_step_is_torch_sgds_step_bit_for_bit() -> None:
+    """``gradient_step`` (the autograd path's θ ← θ − α ∂L/∂θ) moves every parameter exactly
+    as ``torch.optim.SGD`` (no momentum, no decay) does, over several steps."""
+    ours, theirs = _nets(1)[0], copy.deepcopy(_nets(1)[0])
+    sgd = torch.optim.SGD(theirs.parameters(), lr=3e-3)
+    x = torch.linspace(-1.0, 1.0, 4, dtype=torch.float64)
+    for step in range(3):
+        loss = 0.5 * (ours(x + step)[1] - 1.0) ** 2
+        gradient_step(ours, loss, 3e-3)
+        sgd.zero_grad(set_to_none=True)
+        (0.5 * (theirs(x + step)[1] - 1.0) ** 2).backward()
+        sgd.step()
+    for a, b in zip(ours.parameters(), theirs.parameters(), strict=True):
+        assert torch.equal(a, b)
+        assert a.grad is None
+    assert not torch.equal(ours.out.weight, _nets(1)[0].out.weight)  # it moved
 
 
 def test_stacked_members_compute_bit_identically_to_single_networks() -> None:

@@ -27,7 +27,7 @@ import torch
 from cdqn.agents.base import EpsilonGreedy, StepRecord
 from cdqn.config import TrainConfig
 from cdqn.control.runtime import RuntimeController, ScheduledLQR, StateSpace, StaticGain
-from cdqn.network import FastTwoLayer, Forward, QNetwork
+from cdqn.network import FastTwoLayer, Forward, QNetwork, gradient_step
 
 if TYPE_CHECKING:
     from cdqn.agents.episodic_replay import Transitions
@@ -78,7 +78,6 @@ class ControlledAgent:
         self.use_fast_path = cfg.fast_path
         self.reset_integrator = reset_integrator
         self.explorer = EpsilonGreedy(cfg, net.spec.n_actions, rng)
-        self.optimizer = torch.optim.SGD(net.parameters(), lr=cfg.lr)
         self.x_e = 0.0
         self._cached: Forward | None = None
 
@@ -145,9 +144,7 @@ class ControlledAgent:
             loss = static_gain_loss(q_sa, q_next, reward, self.x_e, gains, self.discount)
         else:
             loss = control_reward_loss(q_sa, q_next, reward, u, self.discount)
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.optimizer.step()
+        gradient_step(self.net, loss, self.alpha)
         return float(loss.detach())
 
     def state_dict(self) -> dict[str, Any]:

@@ -29,6 +29,7 @@ from cdqn.network import (
     FastTwoLayer,
     QNetwork,
     Replay,
+    gradient_step,
     step_settings_array,
 )
 
@@ -53,7 +54,6 @@ class DDQNAgent:
         self.cfg = cfg
         self.explorer = EpsilonGreedy(train, net.spec.n_actions, rng)
         self.buffer = ReplayBuffer(cfg.buffer_size, net.spec.n_obs, rng)
-        self.optimizer = torch.optim.SGD(net.parameters(), lr=self.lr)
         self.dtype = net.hidden.weight.dtype
         self.hyper = step_settings_array(self.lr, self.discount, self.fast.dtype)
         b = self.buffer
@@ -115,9 +115,7 @@ class DDQNAgent:
             )
         q_sa = self.net(obs).gather(1, actions.unsqueeze(1)).squeeze(1)
         loss = 0.5 * torch.sum((target - q_sa) ** 2)
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.optimizer.step()
+        gradient_step(self.net, loss, self.lr)
         return float(loss.detach())
 
     def _fast_learn(self) -> float:

@@ -10,8 +10,9 @@ tracking store can resume it (``python -m cdqn.train resume=<run_id>``)::
 ``state.pt`` (``torch.save``, read back with ``weights_only=True``) holds the episode counter,
 the returns so far, the total step count, the number of signal rows, the agent's
 ``state_dict()`` (network, exploration ε, controller state x_e and x_c; for Double DQN the
-target network, step counter and replay buffer), the optimizer state and the RNG states: the
-run's NumPy generator, torch's generator and the environment's ``np_random``.
+target network, step counter and replay buffer) and the RNG states: the run's NumPy
+generator, torch's generator and the environment's ``np_random``.  Plain gradient descent
+(:func:`cdqn.network.gradient_step`) keeps no state of its own.
 """
 
 from __future__ import annotations
@@ -53,7 +54,6 @@ class Checkpoint:
     signal_rows: int
     """Rows of the signal table at the boundary (0 when signals are not stored)."""
     agent: dict[str, Any]
-    optimizer: dict[str, Any] | None
     numpy_rng: dict[str, Any]
     torch_rng: torch.Tensor
     env_rng: dict[str, Any]
@@ -69,14 +69,12 @@ def capture(
     signal_rows: int,
 ) -> Checkpoint:
     """Snapshot of a run at an episode boundary (between two episodes, never inside one)."""
-    optimizer = getattr(agent, "optimizer", None)
     return Checkpoint(
         episode=state.episode,
         returns=[float(r) for r in state.returns],
         total_steps=state.total_steps,
         signal_rows=signal_rows,
         agent=agent.state_dict(),
-        optimizer=optimizer.state_dict() if optimizer is not None else None,
         numpy_rng=dict(rng.bit_generator.state),
         torch_rng=torch.get_rng_state(),
         env_rng=dict(env.unwrapped.np_random.bit_generator.state),
@@ -93,9 +91,6 @@ def restore(
 ) -> None:
     """Put a freshly built run (same config, same seed) into the state of ``ckpt``."""
     agent.load_state_dict(ckpt.agent)
-    optimizer = getattr(agent, "optimizer", None)
-    if optimizer is not None and ckpt.optimizer is not None:
-        optimizer.load_state_dict(ckpt.optimizer)
     rng.bit_generator.state = ckpt.numpy_rng
     torch.set_rng_state(ckpt.torch_rng)
     bit_generator = getattr(np.random, ckpt.env_rng["bit_generator"])()
@@ -178,6 +173,7 @@ class CheckpointStore:
                     if data.get("format") != FORMAT:
                         raise ValueError(f"format {data.get('format')}, expected {FORMAT}")
                     del data["format"]
+                    data.pop("optimizer", None)  # an SGD state (empty) in older checkpoints
                     found.append((self.kind(**data), i))
                 except Exception as err:  # missing slot or a write cut short by a hard kill
                     log.debug("checkpoint slot %s unusable: %s", slot, err)

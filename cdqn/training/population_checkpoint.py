@@ -32,7 +32,7 @@ populations checkpoint and resume bit for bit)::
     agent.load_state_dict(i, state)      # put member i of a freshly built agent into it
 
 ``state`` is a tree of dicts, lists, Python numbers and NumPy arrays (stored with
-``torch.save`` and read back with ``weights_only=True``): parameters, optimiser state,
+``torch.save`` and read back with ``weights_only=True``): parameters,
 integrator and controller states, generator states together with anything drawn from them
 but not yet used (the undrawn part of an exploration plan), and for Double DQN the target
 network, step counter and replay buffer.  A freshly built agent (same configuration, same
