@@ -4,6 +4,8 @@ real MLflow store and a real Optuna SQLite storage."""
 from __future__ import annotations
 
 import json
+import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +19,7 @@ from cdqn.training.batching import batchable
 from cdqn.tuning.objective import area, ma100, padded
 from cdqn.tuning.pruner import EpisodeMedianPruner
 from cdqn.tuning.report import summary_text
-from cdqn.tuning.settings import PrunerConfig, TuneSettings, episode_budget, warmup
+from cdqn.tuning.settings import ParamSpec, PrunerConfig, TuneSettings, episode_budget, warmup
 from cdqn.tuning.space import apply, discount_of, fit_to_budget, fit_to_observation, sample
 from cdqn.tuning.study import Study, _with_controller
 from tests.conftest import CONF_DIR
@@ -449,6 +451,56 @@ def test_a_specification_moves_the_tuned_controllers_own_target(tmp_path: Path) 
     assert list(out.weights.controller_target.hinf_f.gamma_eff) == pytest.approx([-0.75, -0.65])
     assert list(out.weights.target.step_scale) == pytest.approx([0.65, 0.75])
     assert list(out.weights.target.gamma_eff) == list(study.base.weights.target.gamma_eff)
+
+
+def _reads(node: object, at: str = "") -> dict[str, str]:
+    """Every key of a composed (unresolved) configuration whose value is another key's,
+    ``${other}``, as key → other."""
+    if isinstance(node, dict):
+        found: dict[str, str] = {}
+        for k, v in node.items():
+            found |= _reads(v, f"{at}.{k}" if at else str(k))
+        return found
+    hit = re.fullmatch(r"\$\{([\w.]+)\}", node) if isinstance(node, str) else None
+    return {at: hit.group(1)} if hit else {}
+
+
+def _unlike(value: object, p: ParamSpec) -> object:
+    """A value of dimension ``p`` other than ``value``."""
+    if p.choices is not None:
+        return next(c for c in p.choices if c != value)
+    assert p.low is not None and p.high is not None
+    mid = (p.low + p.high) / 2 if not p.log else math.sqrt(p.low * p.high)
+    return round(mid) if p.integer else mid
+
+
+@pytest.mark.parametrize("agent", ["ddqn", "hinf_f"])
+def test_every_key_that_reads_a_searched_one_follows_the_specification(
+    agent: str, tmp_path: Path
+) -> None:
+    """A trial trains what its specification says: a key that reads a searched one
+    (Double DQN's ``controller.lr: ${weights.ddqn.lr}`` and ``controller.target_update``, a
+    design's ``controller.reset_integrator``) takes the sampled value, as a run of the
+    preset (which writes the searched key) does."""
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        cfg = compose("tune", overrides=[*_overrides(tmp_path, agent, 1)[:5],
+                                         f"controller={agent}"])  # fmt: skip
+    study = Study(cfg)
+    raw = OmegaConf.to_container(cfg, resolve=False)
+    assert isinstance(raw, dict)
+    reads = _reads(raw)
+    checked = 0
+    for name, p in study.space.items():
+        path = p.path.format(controller=agent)
+        readers = [k for k, other in reads.items() if other == path]
+        if not readers or p.width is not None or p.scale:
+            continue
+        params = {name: _unlike(OmegaConf.select(study.base, path), p)}
+        out = study.specified(params, seed=100, population=1)
+        for key in readers:
+            assert OmegaConf.select(out, key) == params[name], (key, path)
+        checked += 1
+    assert checked >= (2 if agent == "ddqn" else 1)  # lr, target_update; reset_integrator
 
 
 def test_the_discount_dimension_is_a_log_horizon(tmp_path: Path) -> None:

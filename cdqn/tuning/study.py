@@ -29,7 +29,6 @@ from cdqn.config import (
     merged,
     of_kind,
     resolve_tracking_uri,
-    to_plain,
     to_schema,
 )
 from cdqn.records import Tag
@@ -66,7 +65,10 @@ class Study:
         self.episodes = episode_budget(t, self.conf.env.max_episode_steps)
         self.space = self._offered(t.space)
         self.uri = resolve_tracking_uri(self.conf.tracking.uri)
-        container = to_plain(cfg)
+        # interpolations kept: a key that reads another (``controller.lr: ${weights.ddqn.lr}``,
+        # ``controller.reset_integrator: ${weights.reset_integrator.hinf_f}``) follows the
+        # value a specification writes there, in the trial as in a run of the preset
+        container = of_kind(OmegaConf.to_container(cfg, resolve=False), dict)
         container.pop("tune")
         base = merged(OmegaConf.structured(Config), container)
         with read_write(base):
