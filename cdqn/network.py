@@ -104,7 +104,7 @@ def gradient_step(net: nn.Module, loss: torch.Tensor, lr: float) -> None:
     """One step of plain gradient descent on ``loss``, θ ← θ − α ∂L/∂θ (paper Eq.
     theta_update, Sec. 2.1; ``torch.optim.SGD`` without momentum or decay takes the same step,
     ``p.add_(grad, alpha=-lr)``, but its first use imports ``torch._dynamo``, two seconds of
-    every run's start).  The gradients are returned, not stored on the parameters."""
+    every run's start).  The gradients are not stored on the parameters (``.grad`` stays None)."""
     params = [p for p in net.parameters() if p.requires_grad]
     grads = torch.autograd.grad(loss, params)
     with torch.no_grad():
