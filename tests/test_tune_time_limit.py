@@ -41,19 +41,20 @@ def _trial(number: int, seconds: float, played: int | None, state: TrialState) -
     )  # fmt: skip
 
 
-def test_the_estimate_is_one_median_trial_and_the_evaluation_at_the_trials_pace() -> None:
+def test_the_estimate_is_one_median_trial_and_the_evaluation_at_the_slowest_complete_pace(
+) -> None:  # fmt: skip
     trials = [
-        _trial(0, 30.0, 600, TrialState.COMPLETE),
-        _trial(1, 10.0, 150, TrialState.PRUNED),
-        _trial(2, 50.0, 1000, TrialState.COMPLETE),
+        _trial(0, 30.0, 600, TrialState.COMPLETE),  # τ 0.05 s
+        _trial(1, 10.0, 150, TrialState.PRUNED),  # τ 0.067 s: pruned, never evaluated
+        _trial(2, 60.0, 1000, TrialState.COMPLETE),  # τ 0.06 s: the slowest complete one
         _trial(3, 1.0, None, TrialState.PRUNED),  # infeasible: trained nothing
         _trial(4, 99.0, 600, TrialState.FAIL),
     ]
     size = EvaluationSize(seeds=10, processes=2, episodes=200, runs=1)
     est = estimate(trials, size)
     assert est is not None
-    assert est.trial == 30.0  # median of 30, 10, 50
-    tau = 90.0 / 1750  # wall time per member-episode of the trials that trained
+    assert est.trial == 30.0  # median of 30, 10, 60
+    tau = 0.06  # any complete trial may be the best one, the one evaluated
     assert est.per_member_episode == pytest.approx(tau)
     start = START_ALLOWANCE  # the evaluation's processes start
     assert est.evaluation == pytest.approx(tau * 5 * 200 + start)  # 5 seeds per process
@@ -63,6 +64,27 @@ def test_the_estimate_is_one_median_trial_and_the_evaluation_at_the_trials_pace(
     assert with_baseline.evaluation == pytest.approx(2 * (tau * 1000 + start))
     assert estimate(trials, EvaluationSize(0, 1, 200, 1)).evaluation == 0.0  # no evaluation
     assert estimate(trials[3:], size) is None  # before any trial trained: no estimate
+
+
+def test_before_a_trial_completes_the_evaluation_is_the_most_a_complete_one_can_cost() -> None:
+    pruned = [_trial(0, 40.0, 100, TrialState.PRUNED), _trial(1, 10.0, 300, TrialState.PRUNED)]
+    capped = EvaluationSize(seeds=10, processes=2, episodes=200, runs=1, members=3,
+                            trial_cap=450.0)  # fmt: skip
+    est = estimate(pruned, capped)
+    assert est is not None
+    # a complete trial played 3 × 200 member-episodes in at most 450 s
+    assert est.per_member_episode == pytest.approx(450.0 / 600)
+    assert est.evaluation == pytest.approx(450.0 * 5 / 3 + START_ALLOWANCE)
+    uncapped = estimate(pruned, EvaluationSize(10, 2, 200, 1, members=3))
+    assert uncapped is not None and uncapped.per_member_episode == pytest.approx(50.0 / 400)
+
+
+def test_a_trial_is_too_long_past_its_share_of_the_limit() -> None:
+    study = optuna.create_study()
+    clock = StudyClock(study, 1800.0, EvaluationSize(10, 2, 200, 1, 3, 450.0), joined=False)
+    assert not clock.too_long(449.0) and clock.too_long(451.0)
+    uncapped = StudyClock(study, 1800.0, EvaluationSize(10, 2, 200, 1, 3), joined=False)
+    assert not uncapped.too_long(1e9)
 
 
 def test_workers_share_the_clock_and_a_new_invocation_restarts_it(tmp_path: Path) -> None:
@@ -144,7 +166,8 @@ def _parent(tmp: Path, run_id: str):
 
 @pytest.mark.slow
 def test_a_limit_too_small_for_one_trial_runs_one_and_says_so(tmp_path: Path) -> None:
-    summary = _study(_overrides(tmp_path, "small", 10, ["tune.time_limit=0"]))
+    summary = _study(_overrides(tmp_path, "small", 10, ["tune.time_limit=0",
+                                                        "tune.trial_share=null"]))  # fmt: skip
     assert sum(summary["counts"].values()) == 1
     assert summary["evaluation"]["seeds"] == [1000, 1001]
     reason = _parent(tmp_path, summary["parent_run"]).data.tags[Tag.STOPPED]
@@ -181,3 +204,46 @@ def test_a_limit_of_a_few_trials_stops_a_ten_trial_study_before_its_evaluation(
         f"stopped at its time limit ({limit} s) after {total} trials"
     )
     assert f"study {summary['stopped']}" in summary_text(summary)
+
+
+@pytest.mark.slow
+def test_trials_longer_than_their_cap_stop_and_the_study_says_so(tmp_path: Path) -> None:
+    """A cap of 0.01 s stops every trial before its first episode ends (opening its members'
+    runs alone takes longer); no trial completes, and the summary says why."""
+    summary = _study(_overrides(tmp_path, "capped", 2, ["tune.time_limit=1000",
+                                                        "tune.trial_share=0.00001"]))  # fmt: skip
+    assert summary["counts"]["complete"] == 0 and summary["counts"]["pruned"] == 2
+    for tr in optuna.load_study(study_name="capped",
+                                storage=f"sqlite:///{tmp_path / 'optuna.db'}").trials:  # fmt: skip
+        assert tr.user_attrs["too_long"] is True
+        assert "tune.trial_share × tune.time_limit = 0.01 s" in tr.user_attrs["reason"]
+    assert summary["stopped"] == ("no trial completed: 2 trial(s) trained for their cap "
+                                  "(0.01 s) without ending an episode; give a larger "
+                                  "tune.time_limit or tune.trial_share")  # fmt: skip
+    parent = _parent(tmp_path, summary["parent_run"])
+    assert parent.data.tags["best"] == f"none: {summary['stopped']}"
+    assert f"study {summary['stopped']}" in summary_text(summary)
+
+
+def test_the_summary_names_the_episodes_a_trial_fits_at_the_stopped_trials_pace() -> None:
+    from cdqn.tuning.study import _too_long_hint
+
+    study = optuna.create_study()
+    for number, (seconds, played) in enumerate([(450.0, 600), (450.0, 300)]):
+        trial = _trial(number, seconds, played, TrialState.PRUNED)
+        trial.set_user_attr("too_long", True)
+        study.add_trial(trial)
+    study.add_trial(_trial(2, 10.0, 600, TrialState.PRUNED))  # pruned on its score
+    size = EvaluationSize(10, 2, 1500, 1, members=3, trial_cap=450.0)
+    # 900 s for 900 member-episodes: a trial of 3 members fits 150 episodes in 450 s
+    assert _too_long_hint(study, size) == (
+        ": 2 trial(s) trained for their cap (450 s) at 1 s per member-episode, where a trial "
+        "of 3 members fits about 150 of its 1500 episodes; give tune.episodes=<at most 150> "
+        "(or a lower tune.steps), or a larger tune.time_limit"
+    )
+    assert _too_long_hint(optuna.create_study(), size) == ""
+
+
+def test_a_bad_trial_share_is_refused_with_one_line() -> None:
+    errors = check_overrides(["tune.trial_share=0"], config_name="tune", check=_check_tune())
+    assert errors == ["tune.trial_share=0.0: must be a share in (0, 1], or null for no cap"]

@@ -1,29 +1,37 @@
-"""The study's wall-time budget (``tune.time_limit``): whether a worker may start another trial.
+"""The study's wall-time budget (``tune.time_limit``): whether a worker may start another
+trial, and when a running one stops.
 
 The whole study — its trials, then the evaluation on fresh seeds (and ``tune.baseline``) —
-is to end within ``tune.time_limit`` seconds of its start.  Before each trial a worker
-estimates the time the study still needs,
+is to end within ``tune.time_limit`` seconds of its start.  Three rules keep it there.
 
-    T_rest = T_trial + T_eval,
+* **A trial trains for at most T_cap = tune.trial_share · tune.time_limit** (a quarter by
+  default); one still training then stops at its members' next episode ends and is pruned
+  (:meth:`StudyClock.too_long`).  A complete trial has therefore played its K members'
+  episodes in at most T_cap, and its evaluation, which trains ⌈eval_seeds / processes⌉
+  members per process at the same pace, takes at most ⌈eval_seeds / processes⌉ / K · T_cap:
+  the first trial of each worker and the evaluation of any complete trial fit the limit
+  whatever the specification costs.
+* **Before each trial** a worker estimates the time the study still needs,
 
-and starts no trial when ``elapsed + T_rest > tune.time_limit``:
+      T_rest = T_trial + T_eval,
 
-* T_trial, one more trial: the median wall time (Optuna's start to completion) of the
-  study's trials that trained, complete or pruned (infeasible trials train nothing and are
-  left out); none before the first such trial, so each worker's first trial starts
-  whatever the limit (a limit below T_rest alone is *too small* for one trial, and the
-  study says so);
-* T_eval, the evaluation: the measured time per member-episode of those trials,
-  τ = Σ wall time / Σ member-episodes (each trial records the episodes its members played,
-  ``member_episodes``), times the member-episodes of the evaluation each of its processes
-  trains, plus :data:`START_ALLOWANCE` for those processes to start,
-  τ · ⌈eval_seeds / processes⌉ · episodes + T_start; twice that with a ``tune.baseline``,
-  which trains the same seeds again.
+  and starts no trial when ``elapsed + T_rest > tune.time_limit``:
 
-A trial still training when the evaluation would no longer end within the limit
-(elapsed + T_eval > limit) stops at its members' next episode ends and is pruned
-(:meth:`StudyClock.overdue`), once the study has a complete trial to evaluate; the first
-trials of a study whose limit is too small for one trial still end.
+  - T_trial, one more trial: the median wall time (Optuna's start to completion) of the
+    study's trials that trained, complete or pruned (infeasible trials train nothing and are
+    left out); none before the first such trial, so each worker's first trial starts
+    whatever the limit (a limit below T_rest alone is *too small* for one trial, and the
+    study says so);
+  - T_eval, the evaluation: τ · ⌈eval_seeds / processes⌉ · episodes + T_start, twice that
+    with a ``tune.baseline``, which trains the same seeds again; τ is the wall time per
+    member-episode (each trial records the episodes its members played,
+    ``member_episodes``) of the slowest complete trial, since the best specification is the
+    one evaluated and any complete one may become it; before a trial completes, the most a
+    complete trial can take, T_cap / (K · episodes) (without a cap, the pace of the trials
+    that trained); T_start is :data:`START_ALLOWANCE`.
+* **A trial still training when the evaluation would no longer end within the limit**
+  (elapsed + T_eval > limit) stops at its members' next episode ends and is pruned
+  (:meth:`StudyClock.overdue`), once the study has a complete trial to evaluate.
 
 A population trains its members side by side in one process, so a trial of K members and
 an evaluation process of K members cost alike per member-episode.
@@ -65,7 +73,7 @@ class Estimate:
     evaluation: float
     """The evaluation (and baseline) on fresh seeds."""
     per_member_episode: float
-    """τ: the trials' wall time per member-episode."""
+    """τ of the evaluation: wall time per member-episode (module docstring)."""
 
     @property
     def total(self) -> float:
@@ -108,6 +116,14 @@ class EvaluationSize:
     """Episodes per member."""
     runs: int
     """Evaluations: 1, or 2 with a ``tune.baseline``."""
+    members: int = 1
+    """K, the members of a trial's population (``tune.seeds``)."""
+    trial_cap: float | None = None
+    """T_cap, the most seconds a trial trains (None: no cap)."""
+
+    def per_process(self) -> int:
+        """Members each evaluation process trains."""
+        return math.ceil(self.seeds / max(1, self.processes)) if self.seeds else 0
 
 
 def estimate(trials: list[Any], size: EvaluationSize) -> Estimate | None:
@@ -115,20 +131,27 @@ def estimate(trials: list[Any], size: EvaluationSize) -> Estimate | None:
     (``optuna.trial.FrozenTrial``); None before any trial trained."""
     from optuna.trial import TrialState
 
-    seconds, episodes = [], []
+    seconds: list[float] = []
+    paced: list[tuple[float, int, bool]] = []  # trials that played an episode
     for tr in trials:
         played = tr.user_attrs.get(MEMBER_EPISODES)
-        if tr.state not in (TrialState.COMPLETE, TrialState.PRUNED) or not played:
+        if tr.state not in (TrialState.COMPLETE, TrialState.PRUNED) or played is None:
             continue
         if tr.datetime_start is None or tr.datetime_complete is None:
             continue
         seconds.append((tr.datetime_complete - tr.datetime_start).total_seconds())
-        episodes.append(int(played))
+        if played:
+            paced.append((seconds[-1], int(played), tr.state == TrialState.COMPLETE))
     if not seconds:
         return None
-    tau = sum(seconds) / sum(episodes)
-    per_process = math.ceil(size.seeds / max(1, size.processes)) if size.seeds else 0
-    evaluation = (tau * per_process * size.episodes + START_ALLOWANCE) * size.runs
+    complete = [s / e for s, e, done in paced if done]
+    if complete:
+        tau = max(complete)
+    elif size.trial_cap is not None:
+        tau = size.trial_cap / (max(1, size.members) * size.episodes)
+    else:
+        tau = sum(s for s, _, _ in paced) / max(1, sum(e for _, e, _ in paced))
+    evaluation = (tau * size.per_process() * size.episodes + START_ALLOWANCE) * size.runs
     evaluation = evaluation if size.seeds else 0.0
     return Estimate(statistics.median(seconds), evaluation, tau)
 
@@ -152,6 +175,12 @@ class StudyClock:
 
     def elapsed(self) -> float:
         return time.time() - self.start
+
+    def too_long(self, trained: float) -> bool:
+        """Whether a trial that has trained for ``trained`` seconds is to stop: past T_cap
+        (module docstring)."""
+        cap = self.size.trial_cap
+        return cap is not None and trained > cap
 
     def overdue(self) -> bool:
         """Whether a running trial is to stop so that the evaluation still ends within the

@@ -84,6 +84,10 @@ class TuneSettings:
     time_limit: float | None = 1800.0
     """Wall time of the whole study, evaluation included, seconds (null: none): a worker
     starts no trial that, with the evaluation, would end past it (:mod:`cdqn.tuning.clock`)."""
+    trial_share: float | None = 0.25
+    """The most wall time one trial trains, as a share of ``time_limit`` (null: no cap): a
+    trial still training then stops and is pruned, so that any complete trial and its
+    evaluation fit the limit (:mod:`cdqn.tuning.clock`)."""
     eval_seeds: int = 10
     """Fresh seeds of the final evaluation of the best specification (0: none)."""
     eval_seed: int = 1000
@@ -133,6 +137,14 @@ def episode_budget(t: TuneSettings, cap: int | None) -> int:
     return int(min(t.max_episodes, max(t.min_episodes, t.steps // cap)))
 
 
+def trial_cap(t: TuneSettings) -> float | None:
+    """T_cap, the most seconds a trial trains: ``trial_share · time_limit`` (None without
+    either)."""
+    if t.time_limit is None or t.trial_share is None:
+        return None
+    return t.trial_share * t.time_limit
+
+
 def warmup(p: PrunerConfig, episodes: int) -> int:
     """The pruner's warm-up in episodes: ``tune.pruner.warmup_episodes``, else a quarter of
     ``episodes`` (at least 50)."""
@@ -167,6 +179,9 @@ def validate_tune(conf: TuneConfig) -> None:
     if t.time_limit is not None and not t.time_limit >= 0:
         errors.append(f"tune.time_limit={t.time_limit}: must be a number of seconds >= 0, or null "
                       "for no limit")  # fmt: skip
+    if t.trial_share is not None and not 0 < t.trial_share <= 1:
+        errors.append(f"tune.trial_share={t.trial_share}: must be a share in (0, 1], or null "
+                      "for no cap")  # fmt: skip
     if t.pruner.kind not in ("median", "none"):
         errors.append(f"tune.pruner.kind={t.pruner.kind}: allowed median, none")
     trial = set(range(t.seed, t.seed + t.seeds))

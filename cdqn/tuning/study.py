@@ -37,7 +37,7 @@ from cdqn.tuning.clock import EvaluationSize, StudyClock, recorded_stop
 from cdqn.tuning.evaluation import eval_processes, evaluate, write_comparison
 from cdqn.tuning.presets import write_preset
 from cdqn.tuning.report import log_design, plot_study
-from cdqn.tuning.settings import TuneConfig, episode_budget, validate_tune
+from cdqn.tuning.settings import TuneConfig, episode_budget, trial_cap, validate_tune
 from cdqn.tuning.space import apply, fit_to_budget, fit_to_observation
 from cdqn.tuning.storage import WORKER_SEED_STRIDE, StudyLock, open_storage
 from cdqn.tuning.tracker import Tracker
@@ -180,7 +180,8 @@ class Study:
             _same_environment(study, self.conf)
             self.parent = self.tracker.parent(study, self.conf, self.cfg)
             size = EvaluationSize(t.eval_seeds, eval_processes(t.eval_processes, t.eval_seeds),
-                                  self.episodes, 2 if t.baseline else 1)  # fmt: skip
+                                  self.episodes, 2 if t.baseline else 1, t.seeds,
+                                  trial_cap(t))  # fmt: skip
             self.clock = StudyClock(study, t.time_limit, size, joined=self.tracker.joined)
             self.tracker.client.set_tag(self.parent, "episodes", str(self.episodes))
             _retry_interrupted(study)
@@ -236,9 +237,11 @@ class Study:
             log.warning("study %s %s", t.study, summary["stopped"])
         if count["complete"] == 0:
             self.tracker.metrics(self.parent, metrics)
-            client.set_tag(self.parent, "best", "none: no trial completed")
+            why = "no trial completed" + _too_long_hint(study, self.clock.size)
+            client.set_tag(self.parent, "best", f"none: {why}")
             client.set_terminated(self.parent, "FINISHED")
-            log.warning("study %s: no trial completed; no preset written", t.study)
+            summary["stopped"] = summary.get("stopped") or why
+            log.warning("study %s: %s; no preset written", t.study, why)
             return summary
         best = study.best_trial
         metrics["best_value"] = best.value
@@ -299,6 +302,27 @@ def _same_environment(study: Any, conf: TuneConfig) -> None:
             f"not this run's env {_task_text(task)}; give this environment its own study, "
             "tune.study=<name> (or tune.storage=<url>)"
         )
+
+
+def _too_long_hint(study: Any, size: EvaluationSize) -> str:
+    """What to change when trials stopped at their cap (:data:`cdqn.tuning.trial.TOO_LONG`):
+    the episodes a trial fits at their measured pace; "" when none stopped there."""
+    stopped = [(tr.duration.total_seconds(), int(tr.user_attrs.get("member_episodes", 0)))
+               for tr in study.get_trials(deepcopy=False)
+               if tr.user_attrs.get("too_long") and tr.duration is not None]  # fmt: skip
+    if not stopped or size.trial_cap is None:
+        return ""
+    head = f": {len(stopped)} trial(s) trained for their cap ({size.trial_cap:g} s)"
+    played = sum(e for _, e in stopped)
+    if not played:
+        return (f"{head} without ending an episode; give a larger tune.time_limit or "
+                "tune.trial_share")  # fmt: skip
+    tau = sum(s for s, _ in stopped) / played
+    fits = int(size.trial_cap / (tau * max(1, size.members)))
+    return (f"{head} at {tau:.3g} s per member-episode, where a trial of {size.members} "
+            f"members fits about {fits} of its {size.episodes} episodes; give "
+            f"tune.episodes=<at most {fits}> (or a lower tune.steps), or a larger "
+            "tune.time_limit")  # fmt: skip
 
 
 def _task_text(task: dict[str, Any]) -> str:

@@ -24,6 +24,8 @@ STATUSES = ("complete", "pruned", "infeasible", "failed")
 """``trial_status`` of a trial's MLflow run."""
 OVERDUE = -1
 """``train_population``'s pruning episode for a trial stopped by the study's time limit."""
+TOO_LONG = -2
+"""``train_population``'s pruning episode for a trial stopped at its own time cap."""
 WAIT_SECONDS = 2.0
 """Worker 0 polls the storage this often while other workers' trials run."""
 
@@ -91,9 +93,10 @@ def train_population(
 ) -> tuple[Progress, Any, int | None]:
     """Train ``cfg``'s population; ``report(n, J_n)`` is called each ``interval`` episodes and
     returns True to prune.  With ``report``, the population also stops when the study's
-    clock is overdue (:meth:`cdqn.tuning.clock.StudyClock.overdue`).  Returns the progress,
-    the result and the episode at which it was pruned (None: not pruned; :data:`OVERDUE`:
-    stopped by the clock)."""
+    clock is overdue or the trial has trained past its cap
+    (:meth:`cdqn.tuning.clock.StudyClock.overdue`, :meth:`~cdqn.tuning.clock.StudyClock.too_long`).
+    Returns the progress, the result and the episode at which it was pruned (None: not
+    pruned; :data:`OVERDUE`, :data:`TOO_LONG`: stopped by the clock)."""
     from cdqn.training.divergence import is_divergence
     from cdqn.training.run import run_population
 
@@ -101,14 +104,18 @@ def train_population(
     prog = Progress(seeds)
     interval = study_obj.conf.tune.pruner.interval
     episodes = int(cfg.train.episodes)
-    state: dict[str, Any] = {"next": interval, "pruned": None, "overdue": False}
-    clock = getattr(study_obj, "clock", None)
+    state: dict[str, Any] = {"next": interval, "pruned": None, "overdue": False, "long": False}
+    clock = getattr(study_obj, "clock", None) if report is not None else None
+    started = time.monotonic()
 
     def should_stop() -> bool:
-        if state["pruned"] is not None or state["overdue"]:
+        if state["pruned"] is not None or state["overdue"] or state["long"]:
             return True
-        state["overdue"] = report is not None and clock is not None and clock.overdue()
-        return bool(state["overdue"])
+        if clock is None:
+            return False
+        state["long"] = clock.too_long(time.monotonic() - started)
+        state["overdue"] = not state["long"] and clock.overdue()
+        return bool(state["overdue"] or state["long"])
 
     def observe(member: Any) -> None:
         if is_divergence(member.status, member.reason):
@@ -129,8 +136,8 @@ def train_population(
     for s, r in zip(seeds, result.members, strict=False):  # members in seed order
         if is_divergence(r.status, r.reason):
             prog.failed.add(s)
-    if state["overdue"] and state["pruned"] is None:
-        state["pruned"] = OVERDUE
+    if state["pruned"] is None and (state["overdue"] or state["long"]):
+        state["pruned"] = TOO_LONG if state["long"] else OVERDUE
     return prog, result, state["pruned"]
 
 
@@ -213,10 +220,17 @@ class Trial:
             raise KeyboardInterrupt
         self.tracker.metrics(self.child, {"diverged_members": len(prog.failed)})
         if pruned_at is not None:
+            t = self.s.conf.tune
+            stopped = f"stopped after {min(len(r) for r in prog.returns.values())} episodes"
             if pruned_at == OVERDUE:
-                reason = (f"stopped after {min(len(r) for r in prog.returns.values())} "
-                          "episodes: the evaluation would otherwise end past the study's time "
-                          f"limit ({self.s.conf.tune.time_limit:g} s)")  # fmt: skip
+                reason = (f"{stopped}: the evaluation would otherwise end past the study's "
+                          f"time limit ({t.time_limit:g} s)")  # fmt: skip
+                log.info("trial %d %s", self.trial.number, reason)
+            elif pruned_at == TOO_LONG:
+                reason = (f"{stopped}: it trained for its cap, tune.trial_share × "
+                          f"tune.time_limit = {self.s.clock.size.trial_cap:g} s, after which "
+                          "it and its evaluation would no longer fit the limit")  # fmt: skip
+                self.trial.set_user_attr("too_long", True)
                 log.info("trial %d %s", self.trial.number, reason)
             else:
                 reason = (f"pruned at episode {pruned_at}: J over the first {pruned_at} "
