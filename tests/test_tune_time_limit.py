@@ -75,8 +75,10 @@ def test_before_a_trial_completes_the_evaluation_is_the_most_a_complete_one_can_
     # a complete trial played 3 × 200 member-episodes in at most 450 s
     assert est.per_member_episode == pytest.approx(450.0 / 600)
     assert est.evaluation == pytest.approx(450.0 * 5 / 3 + START_ALLOWANCE)
+    assert est.trial == 450.0  # the next trial may be the first to complete, at the cap
     uncapped = estimate(pruned, EvaluationSize(10, 2, 200, 1, members=3))
     assert uncapped is not None and uncapped.per_member_episode == pytest.approx(50.0 / 400)
+    assert uncapped.trial == 25.0
 
 
 def test_a_trial_is_too_long_past_its_share_of_the_limit() -> None:
@@ -134,6 +136,17 @@ def test_a_running_trial_is_overdue_when_the_evaluation_would_end_past_the_limit
     clock.start -= 4.0
     assert clock.overdue()
     assert not StudyClock(study, None, EvaluationSize(2, 1, 100, 1), joined=False).overdue()
+
+
+def test_a_running_trial_slower_than_the_complete_ones_is_overdue_at_its_own_pace() -> None:
+    study = optuna.create_study()
+    limit = 1000.0
+    clock = StudyClock(study, limit, EvaluationSize(10, 2, 100, 1, 3, 250.0), joined=False)
+    study.add_trial(_trial(0, 30.0, 300, TrialState.COMPLETE))  # τ 0.1 s: T_eval 50 s + start
+    clock.start = time.time() - 700.0
+    assert not clock.overdue()
+    assert not clock.overdue(pace=0.4)  # its evaluation: 200 s + start, ending at 960 s
+    assert clock.overdue(pace=0.6)  # 300 s + start: past the limit
 
 
 @pytest.mark.parametrize(

@@ -19,7 +19,8 @@ is to end within ``tune.time_limit`` seconds of its start.  Three rules keep it 
 
   - T_trial, one more trial: the median wall time (Optuna's start to completion) of the
     study's trials that trained, complete or pruned (infeasible trials train nothing and are
-    left out); none before the first such trial, so each worker's first trial starts
+    left out), and T_cap while no trial has completed (the next one may be the first to, at
+    the cap); none before the first such trial, so each worker's first trial starts
     whatever the limit (a limit below T_rest alone is *too small* for one trial, and the
     study says so);
   - T_eval, the evaluation: τ · ⌈eval_seeds / processes⌉ · episodes + T_start, twice that
@@ -30,8 +31,9 @@ is to end within ``tune.time_limit`` seconds of its start.  Three rules keep it 
     complete trial can take, T_cap / (K · episodes) (without a cap, the pace of the trials
     that trained); T_start is :data:`START_ALLOWANCE`.
 * **A trial still training when the evaluation would no longer end within the limit**
-  (elapsed + T_eval > limit) stops at its members' next episode ends and is pruned
-  (:meth:`StudyClock.overdue`), once the study has a complete trial to evaluate.
+  (elapsed + T_eval > limit, with τ no faster than the trial's own pace so far) stops at
+  its members' next episode ends and is pruned (:meth:`StudyClock.overdue`), once the
+  study has a complete trial to evaluate.
 
 A population trains its members side by side in one process, so a trial of K members and
 an evaluation process of K members cost alike per member-episode.
@@ -125,6 +127,12 @@ class EvaluationSize:
         """Members each evaluation process trains."""
         return math.ceil(self.seeds / max(1, self.processes)) if self.seeds else 0
 
+    def seconds(self, tau: float) -> float:
+        """T_eval at τ seconds per member-episode."""
+        if not self.seeds:
+            return 0.0
+        return (tau * self.per_process() * self.episodes + START_ALLOWANCE) * self.runs
+
 
 def estimate(trials: list[Any], size: EvaluationSize) -> Estimate | None:
     """The time still needed (module docstring) from the study's finished trials
@@ -145,15 +153,15 @@ def estimate(trials: list[Any], size: EvaluationSize) -> Estimate | None:
     if not seconds:
         return None
     complete = [s / e for s, e, done in paced if done]
+    trial = statistics.median(seconds)
     if complete:
         tau = max(complete)
     elif size.trial_cap is not None:
         tau = size.trial_cap / (max(1, size.members) * size.episodes)
+        trial = max(trial, size.trial_cap)
     else:
         tau = sum(s for s, _, _ in paced) / max(1, sum(e for _, e, _ in paced))
-    evaluation = (tau * size.per_process() * size.episodes + START_ALLOWANCE) * size.runs
-    evaluation = evaluation if size.seeds else 0.0
-    return Estimate(statistics.median(seconds), evaluation, tau)
+    return Estimate(trial, size.seconds(tau), tau)
 
 
 class StudyClock:
@@ -171,7 +179,7 @@ class StudyClock:
             study.set_user_attr(STOP, None)
         self.start = float(study.user_attrs[START])
         self._asked: float = -math.inf
-        self._eval: float | None = None
+        self._tau: float | None = None
 
     def elapsed(self) -> float:
         return time.time() - self.start
@@ -182,10 +190,13 @@ class StudyClock:
         cap = self.size.trial_cap
         return cap is not None and trained > cap
 
-    def overdue(self) -> bool:
+    def overdue(self, pace: float | None = None) -> bool:
         """Whether a running trial is to stop so that the evaluation still ends within the
-        limit: the study holds a complete trial, and elapsed + T_eval > limit (asked at every
-        step: the storage is read at most once a second)."""
+        limit: the study holds a complete trial, and elapsed + T_eval > limit, T_eval at the
+        slower of τ and ``pace``, the running trial's own seconds per member-episode so far
+        (it may complete and be the one evaluated; None until a quarter of its
+        member-episodes show it).  Asked at every step: the storage is
+        read at most once a second."""
         if self.limit is None:
             return False
         now = time.monotonic()
@@ -196,8 +207,11 @@ class StudyClock:
             trials = self.study.get_trials(deepcopy=False)
             est = estimate(trials, self.size)
             complete = any(tr.state == TrialState.COMPLETE for tr in trials)
-            self._eval = est.evaluation if complete and est is not None else None
-        return self._eval is not None and self.elapsed() + self._eval > self.limit
+            self._tau = est.per_member_episode if complete and est is not None else None
+        if self._tau is None:
+            return False
+        tau = max(self._tau, pace or 0.0)
+        return self.elapsed() + self.size.seconds(tau) > self.limit
 
     def check(self) -> Stop | None:
         """A :class:`Stop` when one more trial and the evaluation would end past the limit

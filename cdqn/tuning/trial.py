@@ -113,8 +113,12 @@ def train_population(
             return True
         if clock is None:
             return False
-        state["long"] = clock.too_long(time.monotonic() - started)
-        state["overdue"] = not state["long"] and clock.overdue()
+        trained = time.monotonic() - started
+        played = sum(len(r) for r in prog.returns.values())
+        state["long"] = clock.too_long(trained)
+        # the trial's own pace, once a quarter of its member-episodes show it
+        pace = trained / played if 4 * played >= len(seeds) * episodes else None
+        state["overdue"] = not state["long"] and clock.overdue(pace)
         return bool(state["overdue"] or state["long"])
 
     def observe(member: Any) -> None:
