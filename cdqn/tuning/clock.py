@@ -60,6 +60,8 @@ STOP = "time_limit_stop"
 """Study user attribute: why the study stopped starting trials (:class:`Stop` as a dict)."""
 MEMBER_EPISODES = "member_episodes"
 """Trial user attribute: the episodes its members played in all."""
+CAPPED = "too_long"
+"""Trial user attribute: True when the trial was stopped at T_cap."""
 START_ALLOWANCE = 60.0
 """T_start, seconds: the evaluation's processes are new interpreters that import torch and
 MLflow and compile the training kernels before the first episode (measured 20–60 s on two

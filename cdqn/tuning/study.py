@@ -33,7 +33,7 @@ from cdqn.config import (
 )
 from cdqn.records import Tag
 from cdqn.training.interrupt import GracefulStop
-from cdqn.tuning.clock import EvaluationSize, StudyClock, recorded_stop
+from cdqn.tuning.clock import CAPPED, MEMBER_EPISODES, EvaluationSize, StudyClock, recorded_stop
 from cdqn.tuning.evaluation import eval_processes, evaluate, write_comparison
 from cdqn.tuning.presets import write_preset
 from cdqn.tuning.report import log_design, plot_study
@@ -307,9 +307,9 @@ def _same_environment(study: Any, conf: TuneConfig) -> None:
 def _too_long_hint(study: Any, size: EvaluationSize) -> str:
     """What to change when trials stopped at their cap (:data:`cdqn.tuning.trial.TOO_LONG`):
     the episodes a trial fits at their measured pace; "" when none stopped there."""
-    stopped = [(tr.duration.total_seconds(), int(tr.user_attrs.get("member_episodes", 0)))
+    stopped = [(tr.duration.total_seconds(), int(tr.user_attrs.get(MEMBER_EPISODES, 0)))
                for tr in study.get_trials(deepcopy=False)
-               if tr.user_attrs.get("too_long") and tr.duration is not None]  # fmt: skip
+               if tr.user_attrs.get(CAPPED) and tr.duration is not None]  # fmt: skip
     if not stopped or size.trial_cap is None:
         return ""
     head = f": {len(stopped)} trial(s) trained for their cap ({size.trial_cap:g} s)"

@@ -14,7 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 from cdqn.config import ConfigError
 from cdqn.control.errors import DesignError
 from cdqn.records import Metric
-from cdqn.tuning.clock import MEMBER_EPISODES
+from cdqn.tuning.clock import CAPPED, MEMBER_EPISODES
 from cdqn.tuning.objective import Progress, area, padded, score_text
 from cdqn.tuning.report import log_design
 from cdqn.tuning.space import sample
@@ -104,7 +104,8 @@ def train_population(
     prog = Progress(seeds)
     interval = study_obj.conf.tune.pruner.interval
     episodes = int(cfg.train.episodes)
-    state: dict[str, Any] = {"next": interval, "pruned": None, "overdue": False, "long": False}
+    state: dict[str, Any] = {"next": interval, "pruned": None, "overdue": False, "long": False,
+                             "played": 0}  # fmt: skip
     clock = getattr(study_obj, "clock", None) if report is not None else None
     started = time.monotonic()
 
@@ -114,7 +115,7 @@ def train_population(
         if clock is None:
             return False
         trained = time.monotonic() - started
-        played = sum(len(r) for r in prog.returns.values())
+        played = state["played"]
         state["long"] = clock.too_long(trained)
         # the trial's own pace, once a quarter of its member-episodes show it
         pace = trained / played if 4 * played >= len(seeds) * episodes else None
@@ -125,6 +126,7 @@ def train_population(
         if is_divergence(member.status, member.reason):
             prog.failed.add(member.seed)
         prog.observe(member)
+        state["played"] = sum(len(r) for r in prog.returns.values())  # once per episode
         while report is not None and state["pruned"] is None:
             n = state["next"]
             if n > episodes:
@@ -234,7 +236,7 @@ class Trial:
                 reason = (f"{stopped}: it trained for its cap, tune.trial_share × "
                           f"tune.time_limit = {self.s.clock.size.trial_cap:g} s, after which "
                           "it and its evaluation would no longer fit the limit")  # fmt: skip
-                self.trial.set_user_attr("too_long", True)
+                self.trial.set_user_attr(CAPPED, True)
                 log.info("trial %d %s", self.trial.number, reason)
             else:
                 reason = (f"pruned at episode {pruned_at}: J over the first {pruned_at} "
