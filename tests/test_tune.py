@@ -68,6 +68,7 @@ def _overrides(tmp: Path, study: str, trials: int, extra: list[str] | None = Non
         "tune.pruner.startup_trials=1",
         "tune.pruner.warmup_episodes=4",
         # two feasible centres of γ_eff, the step scale around the CartPole design's
+        "tune.space.gamma_eff.choices=null",  # centres in [low, high], not the default's
         "tune.space.gamma_eff.horizon=false",  # the tests' centres are discounts,
         "tune.space.gamma_eff.width=0.1",  # ranges [c - 0.05, c + 0.05]
         "tune.space.gamma_eff.low=-0.95",
@@ -626,8 +627,7 @@ def test_both_agents_tuned_alike_compared_and_their_presets_reproduce_the_settin
         "tune.eval_seeds=2", "tune.pruner.kind=none", "controller.learning_starts=50",
     ]  # fmt: skip
     _store(f"sqlite:///{tmp_path / 'mlflow.db'}", "cdqn-tune", tmp_path)
-    design = _study([*common, "controller=hinf_f", "tune.space.gamma_eff.low=-1.5",
-                     "tune.space.gamma_eff.high=-0.5"])  # fmt: skip
+    design = _study([*common, "controller=hinf_f", "tune.space.gamma_eff.choices=[-1.5,-0.5]"])
     ddqn = _study([*common, "controller=ddqn"])
     shared = {"normalize", "eps_schedule"}
     for summary in (design, ddqn):
