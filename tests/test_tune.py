@@ -3,6 +3,7 @@ real MLflow store and a real Optuna SQLite storage."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import re
@@ -15,12 +16,21 @@ from hydra import compose, initialize_config_dir
 from mlflow.tracking import MlflowClient
 from omegaconf import OmegaConf
 
+from cdqn.control.target import stable_over_box
 from cdqn.training.batching import batchable
 from cdqn.tuning.objective import area, ma100, padded
 from cdqn.tuning.pruner import EpisodeMedianPruner
 from cdqn.tuning.report import summary_text
 from cdqn.tuning.settings import ParamSpec, PrunerConfig, TuneSettings, episode_budget, warmup
-from cdqn.tuning.space import apply, discount_of, fit_to_budget, fit_to_observation, sample
+from cdqn.tuning.space import (
+    apply,
+    discount_of,
+    fit_to_box,
+    fit_to_budget,
+    fit_to_observation,
+    log_horizon_of,
+    sample,
+)
 from cdqn.tuning.study import Study, _with_controller
 from tests.conftest import CONF_DIR
 from tests.helpers import run_cli
@@ -315,6 +325,25 @@ def test_infeasible_specification_is_pruned_with_its_reason(tmp_path: Path) -> N
     assert not (tmp_path / "presets").exists()
 
 
+@pytest.mark.parametrize(
+    ("sampler_seed", "counts"),
+    [(0, {"complete": 2, "pruned": 0, "infeasible": 1, "failed": 0}),  # one refused, two trained
+     (2, {"complete": 0, "pruned": 0, "infeasible": 2, "failed": 0})],  # as many refused: stop
+)  # fmt: skip
+def test_an_infeasible_specification_does_not_use_up_the_budget(
+    tmp_path: Path, sampler_seed: int, counts: dict[str, int]
+) -> None:
+    """``tune.trials`` counts the trials that train: a specification refused before training
+    (γ_eff ∈ [0.85, 0.95] against 1/ρ_max = 1/1.2) is followed by another, until two train
+    or two have been refused."""
+    over = _overrides(tmp_path, "budget", 2, [
+        "~tune.space.step_scale", "~tune.space.replay", "tune.pruner.kind=none",
+        "tune.space.gamma_eff.choices=[0.9,-0.8]", f"tune.sampler_seed={sampler_seed}",
+        "tune.eval_seeds=0",
+    ])  # fmt: skip
+    assert _study(over)["counts"] == counts
+
+
 def test_cli_refuses_overlapping_seeds(tmp_path: Path) -> None:
     proc = run_cli("cdqn.tune", ["tune.seed=0", "tune.seeds=3", "tune.eval_seed=2"], tmp_path)
     assert proc.returncode == 2
@@ -519,6 +548,47 @@ def test_the_discount_dimension_is_a_log_horizon(tmp_path: Path) -> None:
     lo, hi = out.weights.target.gamma_eff
     assert (lo, hi) == pytest.approx((1 - 10**-1.85, 1 - 10**-2.15))
     assert apply(study.base, study.space, {"gamma_eff": -2.0}).weights.target.gamma_eff[1] < -0.98
+
+
+def test_horizons_no_box_allows_are_not_offered() -> None:
+    """A static loop is stable over a box only for γ_eff < 1/ρ_max: with Θ2/Θ1 up to 1.195
+    (CartPole's measured box) the positive centres go, at up to 1.05 the ones above 0.952
+    (h = 1 stays: its range starts at γ(0.85) = 0.859), at up to 1.0 none; a range's high
+    end is lowered to the last centre whose range starts below the bound."""
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        space = OmegaConf.to_object(compose("tune", overrides=["controller=hinf_f"]).tune).space
+    offered = space["gamma_eff"].choices
+    assert offered == [-2.3, -2.0, -1.0, 1.0, 1.5, 2.0, 2.3]
+    assert fit_to_box(space, 1.195)["gamma_eff"].choices == [-2.3, -2.0, -1.0]
+    assert fit_to_box(space, 1.05)["gamma_eff"].choices == [-2.3, -2.0, -1.0, 1.0]
+    assert fit_to_box(space, 1.0) == space
+    positive = {"gamma_eff": dataclasses.replace(space["gamma_eff"], choices=[1.0, 2.0])}
+    assert fit_to_box(positive, 1.2) == positive  # nothing would remain: kept, and said so
+    ranged = {"gamma_eff": dataclasses.replace(space["gamma_eff"], choices=None, low=-2.5,
+                                               high=2.5)}  # fmt: skip
+    top = fit_to_box(ranged, 1.195)["gamma_eff"].high
+    assert stable_over_box(discount_of(top - 0.15), 1.195)
+    assert not stable_over_box(discount_of(top - 0.15 + 1e-6), 1.195)
+    assert log_horizon_of(discount_of(-1.7)) == pytest.approx(-1.7)
+
+
+def test_a_study_offers_the_horizons_its_measured_boxes_allow(tmp_path: Path) -> None:
+    """A ``hinf_f`` study on a measured box measures each offered observation map's box once,
+    before any trial, and offers only the γ_eff centres certifiable on one of them: every
+    offered centre's range passes the same check the synthesis makes."""
+    over = [*_overrides(tmp_path, "boxfit", 1)[:5], "controller=hinf_f",
+            "controller.synthesis.ntk_bounds=measured", "env=cartpole"]  # fmt: skip
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        cfg = compose("tune", overrides=over)
+    study = Study(cfg)
+    maps = len(study.space["normalize"].choices)
+    assert len(study.boxes) == maps  # raw and [−1, 1]
+    rho_max = min(ratio[1] for _, ratio in study.boxes.values())
+    assert rho_max > 1.0  # CartPole's box at width 16 reaches past Θ2 = Θ1
+    kept = study.space["gamma_eff"].choices
+    assert kept and set(kept) < set(OmegaConf.to_object(cfg.tune).space["gamma_eff"].choices)
+    for c in kept:
+        assert stable_over_box(discount_of(c - 0.15), rho_max)
 
 
 def test_conditional_dimensions_are_sampled_only_when_their_condition_holds() -> None:

@@ -161,6 +161,13 @@ def learning_target(K: ControllerMatrices, discount: float, box: NTKBox, lr: flo
     }
 
 
+def stable_over_box(gamma_eff: float, rho_max: float) -> bool:
+    """Whether a static loop at effective discount ``γ_eff`` can be stable over a box whose
+    ratio Θ2/Θ1 reaches ``ρ_max``: its fast mode ``(1 + k1) Θ1 (γ_eff ρ − 1)`` is stable for
+    every ρ of the box only if ``γ_eff ρ_max < 1`` (module docstring)."""
+    return gamma_eff * rho_max < 1.0
+
+
 def check_target(target: TargetBox, box: NTKBox, scheduled: bool = False) -> None:
     """Refuse a target outside ``|γ_eff| ≤ 1`` (the effective Bellman operator expands
     beyond it) and one no controller can keep stable over the box (module docstring): the
@@ -182,7 +189,7 @@ def check_target(target: TargetBox, box: NTKBox, scheduled: bool = False) -> Non
                 "capped there at every step; at 1 or above the step's loop is unstable)"
             )
         return
-    if target.gamma_eff[0] * rho_max >= 1.0:
+    if not stable_over_box(target.gamma_eff[0], rho_max):
         raise DesignError(
             f"{target.key('gamma_eff')}={list(target.gamma_eff)} conflicts with the NTK box "
             f"(Θ2/Θ1 up to {rho_max:g}): the learning loop is stable over the box only for "

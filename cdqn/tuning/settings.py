@@ -66,7 +66,8 @@ class TuneSettings:
     storage: str = "sqlite:///optuna.db"
     """Optuna storage; an SQLite file survives a restart and the study continues."""
     trials: int = 20
-    """Trials of the study in all (a resumed study runs the missing ones)."""
+    """Trials of the study that train (a resumed study runs the missing ones); a specification
+    refused before training (infeasible) does not count, up to ``trials`` of them."""
     seeds: int = 3
     """Population size K of a trial."""
     seed: int = 100

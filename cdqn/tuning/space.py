@@ -21,6 +21,8 @@ NORMALIZE_PATH = "env.normalize"
 """The [−1, 1] map: not offered for a wide one-hot observation (:func:`fit_to_observation`)."""
 EPS_PATH = "train.eps_dec"
 """The ε decrease; its per-episode range depends on the episode budget (:func:`fit_to_budget`)."""
+GAMMA_PATH = "weights.target.gamma_eff"
+"""The effective discount of the learning target; bounded by the NTK box (:func:`fit_to_box`)."""
 
 
 def sample(trial: Any, space: dict[str, ParamSpec]) -> dict[str, Any]:
@@ -69,6 +71,50 @@ def discount_of(h: float) -> float:
     """The discount of the signed decimal log-horizon ``h`` (:class:`ParamSpec`):
     γ(h) = sign(h)·(1 − 10^(−|h|)); γ(0) = 0, γ(±2) = ±0.99, and γ is increasing in h."""
     return math.copysign(1.0 - 10.0 ** (-abs(h)), h)
+
+
+def log_horizon_of(gamma: float) -> float:
+    """The inverse of :func:`discount_of` on (−1, 1): h = sign(γ)·(−log10(1 − |γ|))."""
+    return math.copysign(-math.log10(1.0 - abs(gamma)), gamma)
+
+
+def fit_to_box(space: dict[str, ParamSpec], rho_max: float) -> dict[str, ParamSpec]:
+    """``space`` with the effective discounts no design can keep stable over the measured NTK
+    boxes left out: a static loop is stable over a box only for γ_eff < 1/ρ_max
+    (:func:`cdqn.control.target.stable_over_box`), so a trial whose γ_eff range starts at or
+    above it is refused before it trains.  ``rho_max``: the smallest upper Θ2/Θ1 of the
+    boxes of the offered observation maps (a value one of them allows stays).  A choice whose
+    range starts too high is dropped; a range's ``high`` is lowered to the last centre
+    allowed.  Where no value would remain, the dimension is kept as it is (and said so)."""
+    from cdqn.control.target import stable_over_box
+
+    out = dict(space)
+    for name, p in space.items():
+        if p.path != GAMMA_PATH:
+            continue
+        half = (p.width or 0.0) / 2
+        fitted: ParamSpec | None = p
+        if p.choices is not None:
+            allowed = [
+                c
+                for c in p.choices
+                if stable_over_box(discount_of(c - half) if p.horizon else c - half, rho_max)
+            ]
+            fitted = dataclasses.replace(p, choices=allowed) if allowed else None
+        elif p.low is not None and p.high is not None and rho_max > 1.0:
+            bound = 1.0 / rho_max
+            top = (log_horizon_of(bound) if p.horizon else bound) + half - 1e-9
+            fitted = dataclasses.replace(p, high=min(top, p.high)) if top > p.low else None
+        if fitted is None:
+            log.warning("tune.space.%s: the measured NTK boxes allow γ_eff < 1/ρ_max = %.4g, "
+                        "below every value offered; each trial will be refused", name,
+                        1.0 / rho_max)  # fmt: skip
+        elif fitted != p:
+            log.info("tune.space.%s: %s -> %s (the measured NTK boxes allow γ_eff < 1/ρ_max "
+                     "= %.4g)", name, p.choices or [p.low, p.high],
+                     fitted.choices or [fitted.low, fitted.high], 1.0 / rho_max)  # fmt: skip
+            out[name] = fitted
+    return out
 
 
 def fit_to_observation(

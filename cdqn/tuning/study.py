@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import itertools
 import json
 import logging
 import time
@@ -38,7 +39,14 @@ from cdqn.tuning.evaluation import eval_processes, evaluate, write_comparison
 from cdqn.tuning.presets import write_preset
 from cdqn.tuning.report import log_design, plot_study
 from cdqn.tuning.settings import TuneConfig, episode_budget, trial_cap, validate_tune
-from cdqn.tuning.space import apply, fit_to_budget, fit_to_observation
+from cdqn.tuning.space import (
+    NORMALIZE_PATH,
+    RBF_PATH,
+    apply,
+    fit_to_box,
+    fit_to_budget,
+    fit_to_observation,
+)
 from cdqn.tuning.storage import WORKER_SEED_STRIDE, StudyLock, open_storage
 from cdqn.tuning.tracker import Tracker
 from cdqn.tuning.trial import STATUSES, run_trials
@@ -79,6 +87,8 @@ class Study:
             base.tracking.uri = self.uri
         self.base = base
         self.boxes: dict[str, tuple[list[float], list[float]]] = {}
+        if self.agent in BOXED_CONTROLLERS and base.controller.synthesis.ntk_bounds == "measured":
+            self.space = fit_to_box(self.space, self._rho_max())
         self.stop = GracefulStop()
         """SIGINT/SIGTERM outside a population's training (synthesis, Optuna's bookkeeping):
         the study stops before the next trial trains; while a population trains, its own
@@ -103,6 +113,17 @@ class Study:
         train = self.conf.train
         span = float(train.eps_start) - float(train.eps_end)
         return fit_to_budget(space, self.episodes, self.conf.tune.explore_share, span)
+
+    def _rho_max(self) -> float:
+        """The smallest upper Θ2/Θ1 of the boxes of the observation maps the space offers,
+        each measured here once with the configured exploration, so that every trial of a
+        map, in every worker, is designed on the same box (:meth:`specified`)."""
+        maps = [[(n, c) for c in p.choices or []] for n, p in self.space.items()
+                if p.path in (NORMALIZE_PATH, RBF_PATH)]  # fmt: skip
+        t = self.conf.tune
+        ratios = [float(self.specified(dict(combo), t.seed, t.seeds).weights.theta_bounds.ratio[1])
+                  for combo in itertools.product(*maps)]  # fmt: skip
+        return min(ratios)
 
     # the configuration of a specification -----------------------------------------
 

@@ -31,8 +31,10 @@ WAIT_SECONDS = 2.0
 
 
 def run_trials(study_obj: Any, study: Any, lock: Any) -> list[int]:
-    """Run trials until the study holds ``tune.trials`` complete, pruned or running ones, or
-    until one more trial and the evaluation would end past ``tune.time_limit``
+    """Run trials until the study holds ``tune.trials`` complete, pruned or running ones that
+    train, or as many infeasible ones (a specification no design meets is refused before it
+    trains, in about a second, and does not use up the budget), or until one more trial and
+    the evaluation would end past ``tune.time_limit``
     (:meth:`cdqn.tuning.clock.StudyClock.check`).
 
     Counting them and creating the next trial (``study.optimize``'s ask) happen under
@@ -61,11 +63,14 @@ def run_trials(study_obj: Any, study: Any, lock: Any) -> list[int]:
             raise optuna.TrialPruned(str(refused[-1])) from None
 
     attempts, waiting, timed_out = 0, False, False
-    while attempts < t.trials:  # at most tune.trials trials per worker (failed ones too)
+    while attempts < 2 * t.trials:  # per worker: tune.trials that train, as many refused
         lock.acquire()
         try:
-            states = [tr.state for tr in study.get_trials(deepcopy=False)]
-            full = sum(s in claimed for s in states) >= t.trials
+            trials = study.get_trials(deepcopy=False)
+            states = [tr.state for tr in trials]
+            infeasible = sum(tr.user_attrs.get("status") == "infeasible" for tr in trials)
+            trained = sum(s in claimed for s in states) - infeasible
+            full = trained >= t.trials or infeasible >= t.trials
             timed_out = timed_out or (not full and study_obj.clock.check() is not None)
             if full or timed_out:
                 if t.worker == 0 and TrialState.RUNNING in states:
