@@ -81,6 +81,24 @@ def test_before_a_trial_completes_the_evaluation_is_the_most_a_complete_one_can_
     assert uncapped.trial == 25.0
 
 
+def test_a_complete_trial_that_diverged_early_does_not_set_the_pace() -> None:
+    """A trial whose members all diverged within a few episodes is complete (J keeps their
+    lowest return) but its seconds per member-episode are mostly its start: its pace counts
+    only once a quarter of its member-episodes are played; until another trial shows one,
+    the evaluation is bounded as before any trial completed."""
+    diverged = _trial(0, 6.0, 16, TrialState.COMPLETE)  # 3 members x 1500 episodes asked
+    capped = EvaluationSize(seeds=10, processes=2, episodes=1500, runs=1, members=3,
+                            trial_cap=450.0)  # fmt: skip
+    est = estimate([diverged], capped)
+    assert est is not None
+    assert est.per_member_episode == pytest.approx(450.0 / 4500)  # not 6 / 16
+    assert est.evaluation < 1800
+    full = _trial(1, 90.0, 4500, TrialState.COMPLETE)
+    assert estimate([diverged, full], capped).per_member_episode == pytest.approx(0.02)
+    quarter = _trial(2, 45.0, 1125, TrialState.COMPLETE)  # a quarter: its pace counts
+    assert estimate([full, quarter], capped).per_member_episode == pytest.approx(0.04)
+
+
 def test_a_trial_is_too_long_past_its_share_of_the_limit() -> None:
     study = optuna.create_study()
     clock = StudyClock(study, 1800.0, EvaluationSize(10, 2, 200, 1, 3, 450.0), joined=False)

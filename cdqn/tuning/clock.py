@@ -26,8 +26,9 @@ is to end within ``tune.time_limit`` seconds of its start.  Three rules keep it 
   - T_eval, the evaluation: τ · ⌈eval_seeds / processes⌉ · episodes + T_start, twice that
     with a ``tune.baseline``, which trains the same seeds again; τ is the wall time per
     member-episode (each trial records the episodes its members played,
-    ``member_episodes``) of the slowest complete trial, since the best specification is the
-    one evaluated and any complete one may become it; before a trial completes, the most a
+    ``member_episodes``) of the slowest complete trial that played a quarter of its
+    member-episodes (:data:`PACE_SHARE`), since the best specification is the one evaluated
+    and any complete one may become it; before such a trial completes, the most a
     complete trial can take, T_cap / (K · episodes) (without a cap, the pace of the trials
     that trained); T_start is :data:`START_ALLOWANCE`.
 * **A trial still training when the evaluation would no longer end within the limit**
@@ -62,6 +63,18 @@ MEMBER_EPISODES = "member_episodes"
 """Trial user attribute: the episodes its members played in all."""
 CAPPED = "too_long"
 """Trial user attribute: True when the trial was stopped at T_cap."""
+PACE_SHARE = 0.25
+"""A trial's seconds per member-episode tell its pace once it has played this share of its
+members' episodes: before that, its start (box, synthesis, runs) and its first, longest
+episodes weigh too much (a trial whose members all diverged within a few episodes "takes"
+seconds per episode)."""
+
+
+def shows_pace(played: int, full: int) -> bool:
+    """Whether ``played`` of ``full`` member-episodes tell a trial's pace (:data:`PACE_SHARE`)."""
+    return played >= PACE_SHARE * full
+
+
 START_ALLOWANCE = 60.0
 """T_start, seconds: the evaluation's processes are new interpreters that import torch and
 MLflow and compile the training kernels before the first episode (measured 20–60 s on two
@@ -154,7 +167,8 @@ def estimate(trials: list[Any], size: EvaluationSize) -> Estimate | None:
             paced.append((seconds[-1], int(played), tr.state == TrialState.COMPLETE))
     if not seconds:
         return None
-    complete = [s / e for s, e, done in paced if done]
+    full = max(1, size.members) * size.episodes
+    complete = [s / e for s, e, done in paced if done and shows_pace(e, full)]
     trial = statistics.median(seconds)
     if complete:
         tau = max(complete)

@@ -14,7 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 from cdqn.config import ConfigError
 from cdqn.control.errors import DesignError
 from cdqn.records import Metric
-from cdqn.tuning.clock import CAPPED, MEMBER_EPISODES
+from cdqn.tuning.clock import CAPPED, MEMBER_EPISODES, shows_pace
 from cdqn.tuning.objective import Progress, area, padded, score_text
 from cdqn.tuning.report import log_design
 from cdqn.tuning.space import sample
@@ -123,7 +123,7 @@ def train_population(
         played = state["played"]
         state["long"] = clock.too_long(trained)
         # the trial's own pace, once a quarter of its member-episodes show it
-        pace = trained / played if 4 * played >= len(seeds) * episodes else None
+        pace = trained / played if shows_pace(played, len(seeds) * episodes) else None
         state["overdue"] = not state["long"] and clock.overdue(pace)
         return bool(state["overdue"] or state["long"])
 
