@@ -117,13 +117,21 @@ class Study:
     def _rho_max(self) -> float:
         """The smallest upper Θ2/Θ1 of the boxes of the observation maps the space offers,
         each measured here once with the configured exploration, so that every trial of a
-        map, in every worker, is designed on the same box (:meth:`specified`)."""
+        map, in every worker, is designed on the same box (:meth:`specified`).  A map whose
+        box cannot be measured is left to its trials, which say why; 1.0 (nothing left out)
+        when no box is measured."""
         maps = [[(n, c) for c in p.choices or []] for n, p in self.space.items()
                 if p.path in (NORMALIZE_PATH, RBF_PATH)]  # fmt: skip
         t = self.conf.tune
-        ratios = [float(self.specified(dict(combo), t.seed, t.seeds).weights.theta_bounds.ratio[1])
-                  for combo in itertools.product(*maps)]  # fmt: skip
-        return min(ratios)
+        ratios = []
+        for combo in itertools.product(*maps):
+            try:
+                cfg = self.specified(dict(combo), t.seed, t.seeds)
+            except Exception as err:  # a trial of this map reports it
+                log.warning("NTK box of %s not measured before the trials: %s", dict(combo), err)
+                continue
+            ratios.append(float(cfg.weights.theta_bounds.ratio[1]))
+        return min(ratios, default=1.0)
 
     # the configuration of a specification -----------------------------------------
 
