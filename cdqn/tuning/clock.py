@@ -173,7 +173,7 @@ def estimate(trials: list[Any], size: EvaluationSize) -> Estimate | None:
     if complete:
         tau = max(complete)
     elif size.trial_cap is not None:
-        tau = size.trial_cap / (max(1, size.members) * size.episodes)
+        tau = size.trial_cap / full
         trial = max(trial, size.trial_cap)
     else:
         tau = sum(s for s, _, _ in paced) / max(1, sum(e for _, e, _ in paced))

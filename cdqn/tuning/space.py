@@ -54,17 +54,29 @@ def apply(cfg: DictConfig, space: dict[str, ParamSpec], params: dict[str, Any]) 
         for key, value in params.items():
             p = space[key]
             path = _own_target_path(p.path.format(controller=name), out.weights, name)
-            if p.width is not None:
-                lo, hi = float(value) - p.width / 2, float(value) + p.width / 2
-                value = [discount_of(lo), discount_of(hi)] if p.horizon else [lo, hi]
-            elif p.horizon:
-                value = discount_of(float(value))
+            if p.width is not None or p.horizon:
+                value = written(p, float(value))
             elif p.choices is None and p.scale:
                 node = OmegaConf.select(out, path)
                 plain = OmegaConf.to_container(node) if OmegaConf.is_config(node) else node
                 value = _scaled(plain, float(value))
             OmegaConf.update(out, path, value, merge=False)
     return out
+
+
+def written(p: ParamSpec, value: float) -> float | list[float]:
+    """What the number ``value`` of a ``width`` or ``horizon`` dimension writes at its path:
+    the range [c − width/2, c + width/2] (of discounts γ(h) for a horizon), or γ(h)."""
+    if p.width is not None:
+        lo, hi = value - p.width / 2, value + p.width / 2
+        return [discount_of(lo), discount_of(hi)] if p.horizon else [lo, hi]
+    return discount_of(value) if p.horizon else value
+
+
+def lowest(p: ParamSpec, value: float) -> float:
+    """The lowest number ``value`` writes (:func:`written`)."""
+    out = written(p, value)
+    return out[0] if isinstance(out, list) else out
 
 
 def discount_of(h: float) -> float:
@@ -95,11 +107,7 @@ def fit_to_box(space: dict[str, ParamSpec], rho_max: float) -> dict[str, ParamSp
         half = (p.width or 0.0) / 2
         fitted: ParamSpec | None = p
         if p.choices is not None:
-            allowed = [
-                c
-                for c in p.choices
-                if stable_over_box(discount_of(c - half) if p.horizon else c - half, rho_max)
-            ]
+            allowed = [c for c in p.choices if stable_over_box(lowest(p, float(c)), rho_max)]
             fitted = dataclasses.replace(p, choices=allowed) if allowed else None
         elif p.low is not None and p.high is not None and rho_max > 1.0:
             bound = 1.0 / rho_max

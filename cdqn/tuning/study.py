@@ -49,7 +49,7 @@ from cdqn.tuning.space import (
 )
 from cdqn.tuning.storage import WORKER_SEED_STRIDE, StudyLock, open_storage
 from cdqn.tuning.tracker import Tracker
-from cdqn.tuning.trial import STATUSES, run_trials
+from cdqn.tuning.trial import STATUSES, is_infeasible, run_trials
 
 log = logging.getLogger("cdqn.tune")
 
@@ -384,8 +384,7 @@ def _counts(study: Any) -> dict[str, int]:
         if tr.state == TrialState.COMPLETE:
             count["complete"] += 1
         elif tr.state == TrialState.PRUNED:
-            infeasible = tr.user_attrs.get("status") == "infeasible"
-            count["infeasible" if infeasible else "pruned"] += 1
+            count["infeasible" if is_infeasible(tr) else "pruned"] += 1
         elif tr.state == TrialState.FAIL and tr.number not in retried:
             count["failed"] += 1
     return count

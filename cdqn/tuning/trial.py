@@ -21,6 +21,14 @@ from cdqn.tuning.space import sample
 
 log = logging.getLogger("cdqn.tune")
 STATUSES = ("complete", "pruned", "infeasible", "failed")
+
+
+def is_infeasible(trial: Any) -> bool:
+    """Whether a finished Optuna trial was refused before training (no design meets its
+    specification); such a trial does not count against ``tune.trials``."""
+    return trial.user_attrs.get("status") == "infeasible"
+
+
 """``trial_status`` of a trial's MLflow run."""
 OVERDUE = -1
 """``train_population``'s pruning episode for a trial stopped by the study's time limit."""
@@ -68,7 +76,7 @@ def run_trials(study_obj: Any, study: Any, lock: Any) -> list[int]:
         try:
             trials = study.get_trials(deepcopy=False)
             states = [tr.state for tr in trials]
-            infeasible = sum(tr.user_attrs.get("status") == "infeasible" for tr in trials)
+            infeasible = sum(map(is_infeasible, trials))
             trained = sum(s in claimed for s in states) - infeasible
             full = trained >= t.trials or infeasible >= t.trials
             timed_out = timed_out or (not full and study_obj.clock.check() is not None)
