@@ -19,6 +19,7 @@ from cdqn.tuning.clock import (
     START,
     START_ALLOWANCE,
     EvaluationSize,
+    Pace,
     StudyClock,
     estimate,
     recorded_stop,
@@ -165,6 +166,24 @@ def test_a_running_trial_slower_than_the_complete_ones_is_overdue_at_its_own_pac
     assert not clock.overdue()
     assert not clock.overdue(pace=0.4)  # its evaluation: 200 s + start, ending at 960 s
     assert clock.overdue(pace=0.6)  # 300 s + start: past the limit
+
+
+def test_a_running_trial_is_paced_by_its_later_episodes() -> None:
+    """Taxi-like: the first 400 member-episodes take 0.2 s each, the next 400 0.05 s; of 2 000
+    the trial's evaluation is paced by what its remaining 1 200 will take at 0.05 s, not by
+    the mean so far (0.125 s); CartPole-like lengthening episodes are paced slower than
+    their mean."""
+    pace = Pace(2000)
+    for p in range(1, 401):
+        pace.mark(0.2 * p, p)
+    assert pace.projected() is None  # 400 of 2 000: under a quarter
+    for p in range(401, 801):
+        pace.mark(80.0 + 0.05 * (p - 400), p)
+    assert pace.projected() == pytest.approx((100.0 + 1200 * 0.05) / 2000)  # 0.08 s
+    longer = Pace(1000)
+    for p in range(1, 501):
+        longer.mark(0.01 * p if p <= 250 else 2.5 + 0.03 * (p - 250), p)
+    assert longer.projected() == pytest.approx((10.0 + 500 * 0.03) / 1000)  # above the mean 0.02
 
 
 @pytest.mark.parametrize(

@@ -32,9 +32,9 @@ is to end within ``tune.time_limit`` seconds of its start.  Three rules keep it 
     complete trial can take, T_cap / (K · episodes) (without a cap, the pace of the trials
     that trained); T_start is :data:`START_ALLOWANCE`.
 * **A trial still training when the evaluation would no longer end within the limit**
-  (elapsed + T_eval > limit, with τ no faster than the trial's own pace so far) stops at
-  its members' next episode ends and is pruned (:meth:`StudyClock.overdue`), once the
-  study has a complete trial to evaluate.
+  (elapsed + T_eval > limit, with τ no faster than the trial's own projected pace,
+  :class:`Pace`) stops at its members' next episode ends and is pruned
+  (:meth:`StudyClock.overdue`), once the study has a complete trial to evaluate.
 
 A population trains its members side by side in one process, so a trial of K members and
 an evaluation process of K members cost alike per member-episode.
@@ -47,6 +47,7 @@ it on the parent run (tag ``stopped``) and in the printed summary."""
 
 from __future__ import annotations
 
+import bisect
 import logging
 import math
 import statistics
@@ -73,6 +74,41 @@ seconds per episode)."""
 def shows_pace(played: int, full: int) -> bool:
     """Whether ``played`` of ``full`` member-episodes tell a trial's pace (:data:`PACE_SHARE`)."""
     return played >= PACE_SHARE * full
+
+
+class Pace:
+    """A running trial's pace: the seconds per member-episode it will have taken once its
+    members have played all ``full`` of their episodes, which is what its evaluation would
+    take per member-episode, projected from what it has played so far.
+
+    With t seconds trained and p member-episodes played, and r the seconds per
+    member-episode of the later half of them (from p/2 to p),
+
+        τ_run = (t + (full − p) · r) / full,
+
+    None until p shows the pace (:func:`shows_pace`).  Episodes change length as an agent
+    learns (Taxi's and CliffWalking's shorten, CartPole's lengthen), so the later half tells
+    the episodes still to come better than the mean so far."""
+
+    def __init__(self, full: int) -> None:
+        self.full = max(1, full)
+        self._seconds: list[float] = []
+        self._played: list[int] = []
+
+    def mark(self, seconds: float, played: int) -> None:
+        """Record that ``played`` member-episodes had been played after ``seconds``."""
+        self._seconds.append(seconds)
+        self._played.append(played)
+
+    def projected(self) -> float | None:
+        """τ_run (class docstring), or None before a quarter of the episodes show it."""
+        if not self._played or not shows_pace(self._played[-1], self.full):
+            return None
+        t, p = self._seconds[-1], self._played[-1]
+        i = bisect.bisect_left(self._played, p / 2)
+        t0, p0 = self._seconds[i], self._played[i]
+        recent = (t - t0) / (p - p0) if p > p0 else t / p
+        return (t + max(0, self.full - p) * recent) / self.full
 
 
 START_ALLOWANCE = 60.0
@@ -209,9 +245,9 @@ class StudyClock:
     def overdue(self, pace: float | None = None) -> bool:
         """Whether a running trial is to stop so that the evaluation still ends within the
         limit: the study holds a complete trial, and elapsed + T_eval > limit, T_eval at the
-        slower of τ and ``pace``, the running trial's own seconds per member-episode so far
-        (it may complete and be the one evaluated; None until a quarter of its
-        member-episodes show it).  Asked at every step: the storage is
+        slower of τ and ``pace``, the running trial's projected seconds per member-episode
+        (:meth:`Pace.projected`: it may complete and be the one evaluated; None until a
+        quarter of its member-episodes show it).  Asked at every step: the storage is
         read at most once a second."""
         if self.limit is None:
             return False

@@ -14,7 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 from cdqn.config import ConfigError
 from cdqn.control.errors import DesignError
 from cdqn.records import Metric
-from cdqn.tuning.clock import CAPPED, MEMBER_EPISODES, shows_pace
+from cdqn.tuning.clock import CAPPED, MEMBER_EPISODES, Pace
 from cdqn.tuning.objective import Progress, area, padded, score_text
 from cdqn.tuning.report import log_design
 from cdqn.tuning.space import sample
@@ -117,10 +117,10 @@ def train_population(
     prog = Progress(seeds)
     interval = study_obj.conf.tune.pruner.interval
     episodes = int(cfg.train.episodes)
-    state: dict[str, Any] = {"next": interval, "pruned": None, "overdue": False, "long": False,
-                             "played": 0}  # fmt: skip
+    state: dict[str, Any] = {"next": interval, "pruned": None, "overdue": False, "long": False}
     clock = getattr(study_obj, "clock", None) if report is not None else None
     started = time.monotonic()
+    pace = Pace(len(seeds) * episodes)
 
     def should_stop() -> bool:
         if state["pruned"] is not None or state["overdue"] or state["long"]:
@@ -128,18 +128,16 @@ def train_population(
         if clock is None:
             return False
         trained = time.monotonic() - started
-        played = state["played"]
         state["long"] = clock.too_long(trained)
-        # the trial's own pace, once a quarter of its member-episodes show it
-        pace = trained / played if shows_pace(played, len(seeds) * episodes) else None
-        state["overdue"] = not state["long"] and clock.overdue(pace)
+        state["overdue"] = not state["long"] and clock.overdue(pace.projected())
         return bool(state["overdue"] or state["long"])
 
     def observe(member: Any) -> None:
         if is_divergence(member.status, member.reason):
             prog.failed.add(member.seed)
         prog.observe(member)
-        state["played"] = sum(len(r) for r in prog.returns.values())  # once per episode
+        played = sum(len(r) for r in prog.returns.values())  # once per episode
+        pace.mark(time.monotonic() - started, played)
         while report is not None and state["pruned"] is None:
             n = state["next"]
             if n > episodes:
