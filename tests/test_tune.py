@@ -189,6 +189,10 @@ def test_clearly_losing_trial_is_pruned_at_an_intermediate_episode(tmp_path: Pat
     assert "pruned at episode 80" in runs["1"].data.tags["reason"]
     members = _runs(tmp_path, **{"mlflow.parentRunId": runs["1"].info.run_id})
     assert len(members) == 2 and "KILLED" in {m.info.status for m in members}
+    client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    for m in members:  # a pruned trial is not trained again: its checkpoints are gone
+        assert "pruned at episode 80" in m.data.tags["failure_reason"]
+        assert not client.list_artifacts(m.info.run_id, "checkpoint")
     assert runs["0"].data.tags["trial_status"] == "complete"
     assert not (REPO / "mlruns").exists() or not any(
         (REPO / "mlruns").rglob(runs["0"].info.run_id)

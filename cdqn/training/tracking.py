@@ -296,6 +296,19 @@ def closes_for_good(status: str, reason: str | None) -> bool:
     return status == "FINISHED" or is_divergence(status, reason)
 
 
+def delete_artifacts(client: MlflowClient, run_id: str, artifact_path: str) -> None:
+    """Remove run ``run_id``'s artifacts under ``artifact_path`` (e.g. its resume
+    checkpoints); a store that cannot delete keeps them, with a warning."""
+    run = client.get_run(run_id)
+    try:
+        repo = get_artifact_repository(run.info.artifact_uri)
+        if any(True for _ in client.list_artifacts(run_id, artifact_path)):
+            repo.delete_artifacts(artifact_path)
+    except Exception as err:  # stores without delete (e.g. some proxies): keep them
+        log.warning("run %s: could not delete its %s/ artifacts (%s: %s)", run_id,
+                    artifact_path, type(err).__name__, err)  # fmt: skip
+
+
 class Recorder:
     """Writes one cdqn run into an MLflow store."""
 
@@ -441,18 +454,8 @@ class Recorder:
             self._retry(lambda: self.client.log_batch(self.run_id, metrics=batch), "series")
 
     def delete_artifacts(self, artifact_path: str) -> None:
-        """Remove the run's artifacts under ``artifact_path`` (e.g. its resume checkpoints);
-        a store that cannot delete keeps them, with a warning."""
-        run = self.client.get_run(self.run_id)
-        try:
-            repo = get_artifact_repository(run.info.artifact_uri)
-            if any(True for _ in self.client.list_artifacts(self.run_id, artifact_path)):
-                repo.delete_artifacts(artifact_path)
-        except Exception as err:  # stores without delete (e.g. some proxies): keep them
-            log.warning(
-                "run %s: could not delete its %s/ artifacts (%s: %s)",
-                self.run_id, artifact_path, type(err).__name__, err,
-            )  # fmt: skip
+        """Remove the run's artifacts under ``artifact_path`` (:func:`delete_artifacts`)."""
+        delete_artifacts(self.client, self.run_id, artifact_path)
 
     def finish(
         self,

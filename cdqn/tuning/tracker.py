@@ -99,6 +99,15 @@ class Tracker:
             if reason:
                 self.client.set_tag(rid, Tag.FAILURE_REASON, reason)
 
+    def drop_checkpoints(self, run_ids: list[str]) -> None:
+        """Delete the resume checkpoints of a pruned trial's member runs: a pruned trial is
+        not trained again (a trial cut short by a signal is, and keeps them)."""
+        from cdqn.training.checkpoint import ROOT
+        from cdqn.training.tracking import delete_artifacts
+
+        for rid in run_ids:
+            delete_artifacts(self.client, rid, ROOT)
+
     def returns(self, run_id: str) -> list[float]:
         hist = self.client.get_metric_history(run_id, Metric.EPISODE_RETURN)
         return [m.value for m in sorted(hist, key=lambda m: m.step)]

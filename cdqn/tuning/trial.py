@@ -255,6 +255,7 @@ class Trial:
                           "the complete trials at that episode")  # fmt: skip
                 self.trial.set_user_attr("pruned_at", pruned_at)
             self.tracker.nest(self.child, ids, reason)
+            self.tracker.drop_checkpoints(ids)
             self.trial.set_user_attr("reason", reason)
             self._end("KILLED", "pruned", reason, status="pruned")
             raise optuna.TrialPruned(reason)
