@@ -94,21 +94,22 @@ class Pace:
         self.full = max(1, full)
         self._seconds: list[float] = []
         self._played: list[int] = []
+        self._projected: float | None = None
 
     def mark(self, seconds: float, played: int) -> None:
-        """Record that ``played`` member-episodes had been played after ``seconds``."""
+        """Record that ``played`` member-episodes had been played after ``seconds`` (at an
+        episode's end: the projection changes only here, not at every step)."""
         self._seconds.append(seconds)
         self._played.append(played)
+        if shows_pace(played, self.full):
+            i = bisect.bisect_left(self._played, played / 2)
+            t0, p0 = self._seconds[i], self._played[i]
+            recent = (seconds - t0) / (played - p0) if played > p0 else seconds / played
+            self._projected = (seconds + max(0, self.full - played) * recent) / self.full
 
     def projected(self) -> float | None:
         """τ_run (class docstring), or None before a quarter of the episodes show it."""
-        if not self._played or not shows_pace(self._played[-1], self.full):
-            return None
-        t, p = self._seconds[-1], self._played[-1]
-        i = bisect.bisect_left(self._played, p / 2)
-        t0, p0 = self._seconds[i], self._played[i]
-        recent = (t - t0) / (p - p0) if p > p0 else t / p
-        return (t + max(0, self.full - p) * recent) / self.full
+        return self._projected
 
 
 START_ALLOWANCE = 60.0
