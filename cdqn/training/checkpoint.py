@@ -13,6 +13,10 @@ the returns so far, the total step count, the number of signal rows, the agent's
 target network, step counter and replay buffer) and the RNG states: the run's NumPy
 generator, torch's generator and the environment's ``np_random``.  Plain gradient descent
 (:func:`cdqn.network.gradient_step`) keeps no state of its own.
+
+A large array that is mostly zeros, bit for bit, is stored as the positions and values of
+its other entries (:func:`_encode`): Double DQN's replay of one-hot observations (Taxi-v4:
+500 inputs, one of them 1) takes 2 of every 500 numbers.  Decoding gives the same bits.
 """
 
 from __future__ import annotations
@@ -37,7 +41,13 @@ from cdqn.training.tracking import retrying
 
 log = logging.getLogger("cdqn")
 
-FORMAT = 1
+FORMAT = 2
+READABLE = (1, 2)
+"""Formats :meth:`CheckpointStore.load` and :func:`load_local` read (1: no sparse arrays)."""
+SPARSE_MIN = 4096
+"""Arrays of at least this many entries are checked for sparsity (:func:`_encode`)."""
+SPARSE_SHARE = 0.125
+"""At most this share of entries with a nonzero bit pattern: stored sparse."""
 ROOT = folder(Artifact.CHECKPOINT)
 SLOTS = ("a", "b")
 _CHUNK = re.compile(r"rows-(\d+)-(\d+)\.npy$")
@@ -170,8 +180,8 @@ class CheckpointStore:
                         self.run_id, f"{ROOT}/slot-{slot}/state.pt", tmp
                     )
                     data = _decode(torch.load(local, weights_only=True))
-                    if data.get("format") != FORMAT:
-                        raise ValueError(f"format {data.get('format')}, expected {FORMAT}")
+                    if data.get("format") not in READABLE:
+                        raise ValueError(f"format {data.get('format')}, expected {READABLE}")
                     del data["format"]
                     data.pop("optimizer", None)  # an SGD state (empty) in older checkpoints
                     found.append((self.kind(**data), i))
@@ -254,7 +264,7 @@ def load_local(
     if not path.is_file():
         return None
     data = _decode(torch.load(path, weights_only=True))
-    if data.pop("format", None) != FORMAT:
+    if data.pop("format", None) not in READABLE:
         log.warning("%s: not a checkpoint of this version of cdqn; ignored", path)
         return None
     rows = data.pop("local_signals")
@@ -271,9 +281,10 @@ def _fields(ckpt: Any) -> dict[str, Any]:
 
 
 def _encode(obj: Any) -> Any:
-    """NumPy arrays and scalars -> torch tensors and Python numbers (``weights_only`` safe)."""
+    """NumPy arrays and scalars -> torch tensors and Python numbers (``weights_only`` safe);
+    a sparse array as :func:`_sparse` gives it."""
     if isinstance(obj, np.ndarray):
-        return {"__ndarray__": torch.from_numpy(np.array(obj))}
+        return _sparse(obj) or {"__ndarray__": torch.from_numpy(np.array(obj))}
     if isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, dict):
@@ -283,10 +294,33 @@ def _encode(obj: Any) -> Any:
     return obj
 
 
+def _sparse(a: np.ndarray) -> dict[str, Any] | None:
+    """``a`` as the flat positions and values of its entries whose bit pattern is not zero,
+    when it has at least :data:`SPARSE_MIN` entries and at most :data:`SPARSE_SHARE` of them
+    are such (module docstring); None otherwise.  Positions are found on the bits, so a
+    −0.0 is kept as a value and the decoded array is bit-identical."""
+    if a.size < SPARSE_MIN or a.dtype.kind not in "fiub" or a.dtype.itemsize not in (1, 2, 4, 8):
+        return None
+    flat = np.ascontiguousarray(a).reshape(-1)
+    where = np.flatnonzero(flat.view(f"u{a.dtype.itemsize}"))
+    if len(where) > SPARSE_SHARE * a.size:
+        return None
+    return {
+        "__sparse__": torch.from_numpy(where),
+        "values": torch.from_numpy(flat[where].copy()),
+        "shape": list(a.shape),
+    }
+
+
 def _decode(obj: Any) -> Any:
     if isinstance(obj, dict):
         if set(obj) == {"__ndarray__"}:
             return obj["__ndarray__"].numpy()
+        if set(obj) == {"__sparse__", "values", "shape"}:
+            values = obj["values"].numpy()
+            out = np.zeros(int(np.prod(obj["shape"])), values.dtype)
+            out[obj["__sparse__"].numpy()] = values
+            return out.reshape(obj["shape"])
         return {k: _decode(v) for k, v in obj.items()}
     if isinstance(obj, list | tuple):
         return type(obj)(_decode(v) for v in obj)
