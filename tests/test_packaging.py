@@ -26,7 +26,8 @@ def _run(args: list[str], cwd: Path, site: Path) -> subprocess.CompletedProcess[
 @pytest.mark.slow
 def test_wheel_runs_outside_the_clone(tmp_path: Path) -> None:
     """Build the wheel, install it (without its dependencies, which this interpreter has) into
-    a folder of its own, and run training, tuning's help and synthesis from an empty folder."""
+    a folder of its own, and run training, the table of its run, tuning's help and synthesis
+    from an empty folder."""
     wheels, site, work = tmp_path / "wheels", tmp_path / "site", tmp_path / "work"
     work.mkdir()
     pip = [sys.executable, "-m", "pip", "--disable-pip-version-check"]
@@ -36,6 +37,7 @@ def test_wheel_runs_outside_the_clone(tmp_path: Path) -> None:
     shipped = {f"cdqn/conf/{p.relative_to(ROOT / 'conf')}" for p in (ROOT / "conf").rglob("*.yaml")}
     assert shipped and shipped <= names, sorted(shipped - names)
     assert "hydra_plugins/cdqn_sweeper/cdqn_sweeper.py" in names
+    assert "analysis/make_table.py" in names
     subprocess.run([*pip, "install", "--no-deps", "--target", str(site), str(wheel)], check=True)
 
     where = _run(
@@ -48,6 +50,8 @@ def test_wheel_runs_outside_the_clone(tmp_path: Path) -> None:
     proc = _run(["-m", "cdqn.train", *train], work, site)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "FINISHED" in proc.stdout
+    table = _run(["-m", "analysis.make_table", "--tracking-uri", uri, "--out", "t"], work, site)
+    assert table.returncode == 0 and "| cartpole |" in table.stdout.lower(), table.stderr[-3000:]
     proc = _run(["-m", "cdqn.train", "--info", "plugins"], work, site)
     assert "CdqnSweeper" in proc.stdout, proc.stdout[-3000:]
     proc = _run(["-m", "cdqn.tune", "--help"], work, site)
