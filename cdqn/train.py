@@ -61,6 +61,13 @@ def _is_multirun() -> bool:
         return False
 
 
+def _design_hint(cfg: DictConfig) -> str:
+    """Where a design this environment's box certifies comes from, for a refused design."""
+    env = cfg.env.get("id")
+    return (f"; a design tuned to this environment: python -m cdqn.tune env.id={env} "
+            f"controller=hinf_f (docs/your_environment.md), or controller=ddqn")  # fmt: skip
+
+
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
 def main(cfg: DictConfig) -> float:
     from cdqn.training.callbacks import record_job
@@ -76,7 +83,7 @@ def main(cfg: DictConfig) -> float:
                 raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(conflicts))
         result = run(cfg, progress=not multirun and sys.stderr.isatty())
     except (ConfigError, DesignError) as err:  # user errors, TrackingError included
-        log.error("%s", err)
+        log.error("%s%s", err, _design_hint(cfg) if isinstance(err, DesignError) else "")
         record_job("REFUSED", reason=str(err))
         if not multirun:
             sys.exit(2)

@@ -29,6 +29,9 @@ from cdqn.tuning.study import Study
 
 log = logging.getLogger("cdqn.tune")
 
+EXIT_NO_RESULT = 1
+"""Exit status of a study in which no trial completed (no preset, no evaluation)."""
+
 
 def check_tune(cfg: DictConfig) -> None:
     """What ``python -m cdqn.tune`` refuses (for :func:`cdqn.cli.preflight`): the study's
@@ -53,6 +56,8 @@ def main(cfg: DictConfig) -> None:
         log.error("interrupted: run the same command again to continue the study")
         sys.exit(130)
     print(summary_text(summary))
+    if "no_result" in summary:  # worker 0: the study ended without a specification
+        sys.exit(EXIT_NO_RESULT)
 
 
 if __name__ == "__main__":

@@ -327,6 +327,23 @@ def test_infeasible_specification_is_pruned_with_its_reason(tmp_path: Path) -> N
     assert "1/ρ_max" in run.data.tags["reason"]
     assert not _runs(tmp_path, **{"mlflow.parentRunId": run.info.run_id})  # never trained
     assert not (tmp_path / "presets").exists()
+    assert summary["no_result"].startswith("no trial completed: 1 infeasible (each trial")
+    (parent,) = _runs(tmp_path, kind="tune")
+    assert parent.info.status == "FAILED" and parent.data.tags["best"].startswith("none: ")
+
+
+def test_cli_study_without_a_complete_trial_exits_1_and_says_why(tmp_path: Path) -> None:
+    """Every specification refused before training: the study prints why and what to change,
+    writes no preset, and exits 1."""
+    over = _overrides(tmp_path, "refused", 1, [
+        "~tune.space.step_scale", "~tune.space.replay", "tune.space.gamma_eff.choices=[0.9]",
+    ])  # fmt: skip
+    proc = run_cli("cdqn.tune", over, tmp_path)
+    assert proc.returncode == 1, proc.stderr[-3000:]
+    last = proc.stdout.strip().splitlines()[-1]
+    assert last.startswith("no trial completed: 1 infeasible") and "tune.trials" in last, last
+    assert last.endswith("; no preset written") and "Traceback" not in proc.stderr
+    assert not (tmp_path / "presets").exists()
 
 
 @pytest.mark.parametrize(

@@ -267,12 +267,13 @@ def test_trials_longer_than_their_cap_stop_and_the_study_says_so(tmp_path: Path)
                                 storage=f"sqlite:///{tmp_path / 'optuna.db'}").trials:  # fmt: skip
         assert tr.user_attrs["too_long"] is True
         assert "tune.trial_share × tune.time_limit = 0.01 s" in tr.user_attrs["reason"]
-    assert summary["stopped"] == ("no trial completed: 2 trial(s) trained for their cap "
-                                  "(0.01 s) without ending an episode; give a larger "
-                                  "tune.time_limit or tune.trial_share")  # fmt: skip
+    assert summary["no_result"] == ("no trial completed: 2 trial(s) trained for their cap "
+                                    "(0.01 s) without ending an episode; give a larger "
+                                    "tune.time_limit or tune.trial_share")  # fmt: skip
     parent = _parent(tmp_path, summary["parent_run"])
-    assert parent.data.tags["best"] == f"none: {summary['stopped']}"
-    assert f"study {summary['stopped']}" in summary_text(summary)
+    assert parent.data.tags["best"] == f"none: {summary['no_result']}"
+    assert parent.info.status == "FAILED"
+    assert f"{summary['no_result']}; no preset written" in summary_text(summary)
 
 
 def test_the_summary_names_the_episodes_a_trial_fits_at_the_stopped_trials_pace() -> None:

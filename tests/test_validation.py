@@ -184,6 +184,19 @@ def test_cli_refuses_bad_config(overrides: list[str], expected: str, tmp_path: P
     assert not (tmp_path / "m.db").exists()
 
 
+def test_cli_refused_design_names_its_reason_and_where_a_design_comes_from(tmp_path: Path):
+    """A learning target the box cannot certify: one error line with the reason and the
+    command that tunes a design for the environment, exit 2, no traceback."""
+    args = ["controller=hinf_f", "weights.target.gamma_eff=[0.9,0.95]", *TINY,
+            f"tracking.uri=sqlite:///{tmp_path}/m.db"]  # fmt: skip
+    proc = run_cli("cdqn.train", args, tmp_path)
+    assert proc.returncode == EXIT_CONFIG, proc.stderr[-3000:]
+    (line,) = [x for x in (proc.stdout + proc.stderr).splitlines() if "[ERROR]" in x]
+    assert "conflicts with the NTK box" in line and "1/ρ_max" in line
+    assert "python -m cdqn.tune env.id=CartPole-v1 controller=hinf_f" in line
+    assert "Traceback" not in proc.stderr + proc.stdout
+
+
 SWEEPS = Path(__file__).resolve().parents[1] / "sweeps"
 
 

@@ -165,7 +165,7 @@ def write_comparison(study: Any, summary: dict[str, Any]) -> dict[str, Any]:
         (Path(tmp) / "comparison.md").write_text(table + "\n")
         _figure(rows, env, Path(tmp) / "comparison.png")
         study.tracker.client.log_artifacts(study.parent, tmp, "comparison")
-    return {"env": env.id, "table": table, "rows": [r["agent"] for r in rows]}
+    return {"env": env.name, "table": table, "rows": [r["agent"] for r in rows]}
 
 
 def _other_agents(study: Any, mine: dict[str, Any]) -> list[dict[str, Any]]:
@@ -246,7 +246,7 @@ def _figure(rows: list[dict[str, Any]], env: Any, out: Path) -> None:
         ax.axhline(env.solve_threshold, color="grey", ls=":", lw=1)
     ax.set_xlabel("episode")
     ax.set_ylabel("MA100 return, mean ± std")
-    ax.set_title(f"{env.id}: tuned agents on fresh seeds")
+    ax.set_title(f"{env.name}: tuned agents on fresh seeds")
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     fig.tight_layout()
     fig.savefig(out, dpi=120)

@@ -90,6 +90,8 @@ def summary_text(s: dict[str, Any]) -> str:
     ]
     if "stopped" in s:
         lines.append(f"study {s['stopped']}")
+    if "no_result" in s:
+        lines.append(f"{s['no_result']}; no preset written")
     if "best_trial" in s:
         final = score_text(s["best_final_score"])
         lines.append(f"best trial {s['best_trial']}: J = {s['best_value']:.2f} (final MA100 "

@@ -266,10 +266,12 @@ class Study:
             log.warning("study %s %s", t.study, summary["stopped"])
         if count["complete"] == 0:
             self.tracker.metrics(self.parent, metrics)
-            why = "no trial completed" + _too_long_hint(study, self.clock.size)
+            why = "no trial completed" + (
+                _too_long_hint(study, self.clock.size) or _refused_hint(count)
+            )
             client.set_tag(self.parent, "best", f"none: {why}")
-            client.set_terminated(self.parent, "FINISHED")
-            summary["stopped"] = summary.get("stopped") or why
+            client.set_terminated(self.parent, "FAILED")
+            summary["no_result"] = why
             log.warning("study %s: %s; no preset written", t.study, why)
             return summary
         best = study.best_trial
@@ -352,6 +354,17 @@ def _too_long_hint(study: Any, size: EvaluationSize) -> str:
             f"members fits about {fits} of its {size.episodes} episodes; give "
             f"tune.episodes=<at most {fits}> (or a lower tune.steps), or a larger "
             "tune.time_limit")  # fmt: skip
+
+
+def _refused_hint(count: dict[str, int]) -> str:
+    """What to change when no trial trained to its end for another reason than its cap:
+    specifications refused before training (infeasible) or trials that failed."""
+    parts = [f"{count[k]} {k}" for k in ("infeasible", "failed", "pruned") if count[k]]
+    if not parts:
+        return ""
+    return (f": {', '.join(parts)} (each trial run's tag `reason` says why); give more "
+            "tune.trials, or keep tune.space to what the environment allows (a design's "
+            "learning targets that its measured NTK box certifies)")  # fmt: skip
 
 
 def _task_text(task: dict[str, Any]) -> str:
