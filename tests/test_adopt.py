@@ -275,6 +275,11 @@ REFUSED = [
         "gymnasium.envs:_raise_mujoco_py_error failed to import (ImportError: The mujoco v2 "
         "and v3 based environments have been moved to the gymnasium-robotics project",
     ),
+    (  # an image: not flattened into the network's input
+        ["env.id=CarRacing-v3", "+env.kwargs.continuous=false"],
+        "env.id='CarRacing-v3': cdqn needs a Box observation of at most 1024 entries "
+        "(flattened), a MultiBinary one, or Discrete ones",
+    ),
     (  # a one-hot observation of 500 features: the grid's size as an order of magnitude
         ["env.id=Taxi-v4", "env.rbf_centres=4"],
         "env.rbf_centres=4: 4^500 = about 10^301 features, more than 4096; use fewer centres",
@@ -421,6 +426,29 @@ def test_actions_numbered_from_another_start_reach_the_environment_shifted() -> 
     overrides = [*BASE, f"env.id={TOY}", "+env.kwargs.action_start=-1", "controller=ddqn"]
     assert _single(overrides)[0] == "FINISHED"
     assert len(_population(overrides, [3, 4])[1].returns) == 6
+
+
+@pytest.mark.parametrize(
+    ("form", "first", "width"),
+    [("column", [0.0, 1.0], 2),  # a (2, 1) Box, flattened
+     ("multi_discrete", [1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1], 16),  # cells 1 | 7
+     ("multi_binary", [1, 0, 0, 0, 0, 0, 0, 0], 8)],  # position 0 of 8
+)  # fmt: skip
+def test_other_observation_spaces_are_flattened_or_one_hot(
+    form: str, first: list[float], width: int
+) -> None:
+    """A ``Box`` of another shape and a ``MultiBinary`` are flattened, a ``MultiDiscrete``
+    (values from its ``start``) goes in one-hot per part; a population of them trains as the
+    single runs of its seeds."""
+    env = make_env(EnvConfig(id=TOY, kwargs={"form": form}, max_episode_steps=50))
+    assert env.observation_space.shape == (width,)
+    assert env.reset(seed=0)[0].tolist() == first
+    overrides = [*BASE, f"env.id={TOY}", f"+env.kwargs.form={form}", "controller=ddqn"]
+    members = _population(overrides, [3, 4])
+    for m in members:
+        status, _, returns, rows = _single([*overrides, f"seed={m.seed}"])
+        assert m.status == status == "FINISHED" and m.returns == returns
+        assert np.array_equal(m.signals.state(), rows, equal_nan=True)  # loss: NaN at first
 
 
 @pytest.mark.parametrize("controller", ["none", "h2"])

@@ -21,6 +21,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.envs.registration import EnvSpec
 from gymnasium.spaces import Box, Discrete
+from gymnasium.wrappers import FlattenObservation
 
 from cdqn.config import ConfigError, EnvConfig, of_kind
 from cdqn.envs.wrappers import (
@@ -29,7 +30,12 @@ from cdqn.envs.wrappers import (
     ObservationSubset,
     OneHot,
     RadialFeatures,
+    flattens,
 )
+
+MAX_FLAT_INPUTS = 1024
+"""The most entries of a ``Box`` observation of another shape (or a ``MultiBinary``) that
+:func:`make_env` flattens into the network's input."""
 
 EXTRAS = {
     "box2d": 'pip install "gymnasium[box2d]"',
@@ -180,8 +186,9 @@ def _entry_text(spec: EnvSpec) -> str:
 def make_env(cfg: EnvConfig) -> gym.Env:
     """Build the environment of ``cfg``: gymnasium id (its module imported first), its
     constructor arguments ``env.kwargs``, episode cap, actions numbered from 0, one-hot
-    encoding of a discrete observation, feature subset, scaling (``env.normalize``) and
-    radial basis features (``env.rbf_centres``), in that order."""
+    encoding of a discrete observation or flattening of another shape, feature subset,
+    scaling (``env.normalize``) and radial basis features (``env.rbf_centres``), in that
+    order."""
     env = _make(cfg.id, dict(cfg.kwargs or {}), cfg.max_episode_steps)
     if not isinstance(env.action_space, Discrete):
         env.close()
@@ -192,12 +199,15 @@ def make_env(cfg: EnvConfig) -> gym.Env:
         env = ActionStart(env)
     if OneHot.encodes(env.observation_space):
         env = OneHot(env)
+    elif flattens(env.observation_space, MAX_FLAT_INPUTS):
+        env = FlattenObservation(env)
     space = env.observation_space
     if not isinstance(space, Box) or len(space.shape) != 1:
         env.close()
         raise ConfigError(
-            f"env.id={cfg.id!r}: cdqn needs a flat Box observation, a Discrete one or a Tuple "
-            f"of Discrete ones, got {space}"
+            f"env.id={cfg.id!r}: cdqn needs a Box observation of at most {MAX_FLAT_INPUTS} "
+            "entries (flattened), a MultiBinary one, or Discrete ones (Discrete, MultiDiscrete, "
+            f"a Tuple of them: one-hot); got {space}"
         )
     if cfg.obs_indices is not None:
         bad = [i for i in cfg.obs_indices if not 0 <= i < space.shape[0]]

@@ -1,17 +1,16 @@
 """Wrappers: what the network sees of an environment's observation, and its actions.
 
 :func:`cdqn.envs.make.make_env` numbers the actions from 0 (:class:`ActionStart`) and
-applies the observation maps in the order one-hot encoding (a ``Discrete`` or ``Tuple`` of
-``Discrete`` observation), feature subset, scaling, radial basis features.
+applies the observation maps in the order one-hot encoding (a ``Discrete``,
+``MultiDiscrete`` or ``Tuple`` of them) or flattening (a ``Box`` of another shape, a
+``MultiBinary``), feature subset, scaling, radial basis features.
 """
 
 from __future__ import annotations
 
 import gymnasium as gym
 import numpy as np
-from gymnasium.spaces import Box, Discrete, Space, Tuple
-
-from cdqn.config import of_kind
+from gymnasium.spaces import Box, Discrete, MultiBinary, MultiDiscrete, Space, Tuple
 
 
 def real_dtype(space: Box) -> np.dtype:
@@ -24,7 +23,8 @@ def real_dtype(space: Box) -> np.dtype:
 
 class OneHot(gym.ObservationWrapper):
     """A ``Discrete(n)`` observation as the one-hot vector ``e_s`` of length ``n``; a
-    ``Tuple`` of ``Discrete`` spaces as the concatenation of their one-hot vectors.
+    ``MultiDiscrete`` one, or a ``Tuple`` of such spaces, as the concatenation of the one-hot
+    vectors of its parts (in the order of the flattened ``nvec``).
 
     A state index fed as a number would be read as a magnitude (Taxi's state 400 "larger"
     than state 4).  With ``e_s`` every state has its own input direction: in the NTK of
@@ -34,30 +34,50 @@ class OneHot(gym.ObservationWrapper):
 
     def __init__(self, env: gym.Env) -> None:
         super().__init__(env)
-        self.sizes, self.starts = self.parts(env.observation_space)
+        parts = self.parts(env.observation_space)
+        assert parts is not None
+        self.sizes = [n for n, _ in parts]
+        self.starts = np.array([start for _, start in parts], dtype=np.int64)
         self.offsets = np.concatenate([[0], np.cumsum(self.sizes)[:-1]]).astype(np.int64)
         self.observation_space = Box(0.0, 1.0, (int(sum(self.sizes)),), dtype=np.float32)
 
     @staticmethod
     def encodes(space: Space) -> bool:
-        """Whether :class:`OneHot` encodes ``space``: ``Discrete`` or a ``Tuple`` of them."""
-        if isinstance(space, Tuple):
-            return len(space.spaces) > 0 and all(isinstance(s, Discrete) for s in space.spaces)
-        return isinstance(space, Discrete)
+        """Whether :class:`OneHot` encodes ``space`` (class docstring)."""
+        return OneHot.parts(space) is not None
 
     @staticmethod
-    def parts(space: Space) -> tuple[list[int], list[int]]:
-        """Sizes ``n`` and first values ``start`` of the ``Discrete`` parts of ``space``."""
-        spaces = space.spaces if isinstance(space, Tuple) else (space,)
-        discrete = [of_kind(s, Discrete) for s in spaces]
-        return [int(s.n) for s in discrete], [int(s.start) for s in discrete]
+    def parts(space: Space) -> list[tuple[int, int]] | None:
+        """Size ``n`` and first value ``start`` of each discrete part of ``space``, or None
+        when ``space`` is not made of discrete parts only."""
+        if isinstance(space, Discrete):
+            return [(int(space.n), int(space.start))]
+        if isinstance(space, MultiDiscrete):
+            sizes, starts = space.nvec.reshape(-1), np.asarray(space.start).reshape(-1)
+            return [(int(n), int(s)) for n, s in zip(sizes, starts, strict=True)] or None
+        if isinstance(space, Tuple) and space.spaces:
+            each = [OneHot.parts(s) for s in space.spaces]
+            return None if any(p is None for p in each) else [x for p in each if p for x in p]
+        return None
 
     def observation(self, observation: object) -> np.ndarray:
-        values = observation if isinstance(observation, tuple) else (observation,)
         out = np.zeros(int(sum(self.sizes)), dtype=np.float32)
-        for offset, start, value in zip(self.offsets, self.starts, values, strict=True):
-            out[offset + int(value) - start] = 1.0
+        if isinstance(observation, int | np.integer):  # one Discrete
+            out[int(observation) - int(self.starts[0])] = 1.0
+            return out
+        parts = observation if isinstance(observation, tuple) else (observation,)
+        values = np.concatenate([np.asarray(v, dtype=np.int64).reshape(-1) for v in parts])
+        out[self.offsets + values - self.starts] = 1.0
         return out
+
+
+def flattens(space: Space, most: int) -> bool:
+    """Whether :func:`cdqn.envs.make.make_env` flattens ``space`` into a flat ``Box``
+    (``gymnasium.wrappers.FlattenObservation``): a ``Box`` of another shape or a
+    ``MultiBinary``, of at most ``most`` entries (an image of 96 × 96 × 3 is not a feature
+    vector for a two-layer network)."""
+    shaped = isinstance(space, Box) and len(space.shape) != 1
+    return (shaped or isinstance(space, MultiBinary)) and 0 < gym.spaces.flatdim(space) <= most
 
 
 class ActionStart(gym.ActionWrapper):

@@ -4,8 +4,9 @@
 
 ``CdqnChain-v0``: walk right along a chain of ``length`` cells (``Box`` observation, two
 actions, numbered from ``action_start``; ``cells=True``: an integer ``Box`` of the cells to
-either side), capped at 50 steps; ``CdqnChainNoCap-v0``: the same, registered without an
-episode cap."""
+either side; ``form``: the same observation as a ``(2, 1)`` column, the cells as a
+``MultiDiscrete``, or the position as a ``MultiBinary``), capped at 50 steps;
+``CdqnChainNoCap-v0``: the same, registered without an episode cap."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from gymnasium.spaces import Box, Discrete
+from gymnasium.spaces import Box, Discrete, MultiBinary, MultiDiscrete
 
 
 class Chain(gym.Env):
@@ -30,17 +31,29 @@ class Chain(gym.Env):
         step_reward: float = -1.0,
         cells: bool = False,
         action_start: int = 0,
+        form: str = "box",
     ) -> None:
         self.length, self.slip, self.step_reward, self.cells = length, slip, step_reward, cells
-        self.observation_space = (
-            Box(0, length - 1, (2,), dtype=np.int64)
+        self.form = form
+        self.observation_space: gym.Space[Any] = {
+            "box": Box(0, length - 1, (2,), dtype=np.int64)
             if cells
-            else Box(0.0, 1.0, (2,), dtype=np.float32)
-        )
+            else Box(0.0, 1.0, (2,), dtype=np.float32),
+            "column": Box(0.0, 1.0, (2, 1), dtype=np.float32),
+            "multi_discrete": MultiDiscrete([length, length], start=[1, 0]),
+            "multi_binary": MultiBinary(length),
+        }[form]
         self.action_space = Discrete(2, start=action_start)
         self.pos = 0
 
     def _obs(self) -> np.ndarray:
+        if self.form == "multi_discrete":  # cells to the left (numbered from 1) and right
+            return np.array([self.pos + 1, self.length - 1 - self.pos], dtype=np.int64)
+        if self.form == "multi_binary":
+            return (np.arange(self.length) == self.pos).astype(np.int8)
+        if self.form == "column":
+            x = self.pos / (self.length - 1)
+            return np.array([[x], [1.0 - x]], dtype=np.float32)
         if self.cells:  # an integer observation: the cells to the left and to the right
             return np.array([self.pos, self.length - 1 - self.pos], dtype=np.int64)
         x = self.pos / (self.length - 1)
