@@ -24,7 +24,6 @@ import os
 import re
 import sys
 import typing
-import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -58,9 +57,6 @@ EXIT_CONFIG = 2
 MAX_COMPOSITIONS = 64
 """A multirun is checked with at most this many compositions (each swept value once)."""
 
-warnings.filterwarnings(  # the user preset folder on the search path need not exist
-    "ignore", message=r"provider=hydra\.searchpath in main, path=.* is not available"
-)
 
 _HYDRA_ONLY_FLAGS = {
     "-h", "--help", "--hydra-help", "-i", "--info", "--version", "-c", "--cfg", "--resolve",

@@ -13,6 +13,7 @@ the key, the value and what is allowed (``network.width=0: must be a positive in
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,6 +36,10 @@ def _conf_dir() -> Path:
 
 CONF_DIR = _conf_dir()
 """The Hydra config folder of every entry point (``python -m cdqn.train``, ...)."""
+
+warnings.filterwarnings(  # the user preset folder on the search path need not exist
+    "ignore", message=r"provider=hydra\.searchpath in main, path=.* is not available"
+)
 
 
 AGENT_SETTING = "cdqn.agent"
