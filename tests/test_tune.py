@@ -726,6 +726,9 @@ def test_both_agents_tuned_alike_compared_and_their_presets_reproduce_the_settin
         assert summary["evaluation"]["seeds"] == [1000, 1001]
     assert ddqn["comparison"]["rows"] == ["ddqn", "hinf_f"]
     assert "| hinf_f | CartPole-v1-cap60-hinf_f |" in ddqn["comparison"]["table"]
+    chance = ddqn["comparison"]["random"]  # CartPole: about 22 steps of random balance
+    assert 10 < chance["mean"] < 40 and chance["episodes"] == 100
+    assert "A random policy scores" in ddqn["comparison"]["table"]
     client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
     arts = {a.path for a in client.list_artifacts(ddqn["parent_run"], "comparison")}
     assert arts == {"comparison/comparison.md", "comparison/comparison.png"}

@@ -11,10 +11,10 @@ from hydra import compose, initialize_config_dir
 from mlflow.tracking import MlflowClient
 from omegaconf import OmegaConf
 
-from cdqn.config import ConfigError
+from cdqn.config import ConfigError, EnvConfig
 from cdqn.envs import adopt
 from cdqn.training.run import run
-from cdqn.tuning.evaluation import comparison_table, summarise
+from cdqn.tuning.evaluation import comparison_table, random_policy, summarise
 from cdqn.tuning.objective import score_text
 from cdqn.tuning.report import summary_text
 from tests.conftest import CONF_DIR
@@ -41,6 +41,21 @@ def test_the_comparison_says_by_how_much_a_design_reaches_or_falls_short() -> No
     table = comparison_table([base, low, high], None, 4)
     assert "hinf_f falls short of Double DQN's final score minus one std (0.52) by 0.09." in table
     assert "hinf reaches Double DQN's final score minus one std (0.52) by 0.08." in table
+
+
+def test_the_comparison_says_how_far_each_agent_ends_above_a_random_policy() -> None:
+    """Taxi-v4 played with random actions on two seeds scores far below the −200 of a policy
+    that only waits out the cap (illegal pick-ups cost 10); the table says how far each agent
+    ends from it."""
+    chance = random_policy(EnvConfig(id="Taxi-v4", max_episode_steps=200), [1000, 1001], 20)
+    assert chance["episodes"] == 20 and chance["mean"] < -300 and chance["std"] > 0
+    assert random_policy(EnvConfig(id="Taxi-v4", max_episode_steps=200), [1000, 1001], 20) == (
+        chance
+    )  # the same seeds, the same episodes
+    base = {**summarise("ddqn", {1000: [-205.0] * 4, 1001: [-207.0] * 4}, 4, None), "study": "d"}
+    table = comparison_table([base], None, 4, {"mean": -776.25, "std": 101.5, "episodes": 20})
+    assert table.endswith("A random policy scores -776.25 ± 101.50 per episode (20 episodes on "
+                          "the same seeds); final score against it: ddqn +570.25.")  # fmt: skip
 
 
 def test_the_comparison_keeps_three_decimals_where_the_returns_are_below_a_tenth() -> None:

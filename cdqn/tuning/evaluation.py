@@ -160,12 +160,41 @@ def write_comparison(study: Any, summary: dict[str, Any]) -> dict[str, Any]:
         rows.append({**summary["baseline"], "agent": f"{summary['baseline']['agent']} (untuned)",
                      "study": study.conf.tune.study})  # fmt: skip
     env = study.conf.env
-    table = comparison_table(rows, env.solve_threshold, study.episodes)
+    chance = random_policy(env, summary["evaluation"]["seeds"])
+    table = comparison_table(rows, env.solve_threshold, study.episodes, chance)
     with tempfile.TemporaryDirectory() as tmp:
         (Path(tmp) / "comparison.md").write_text(table + "\n")
-        _figure(rows, env, Path(tmp) / "comparison.png")
+        _figure(rows, env, Path(tmp) / "comparison.png", chance)
         study.tracker.client.log_artifacts(study.parent, tmp, "comparison")
-    return {"env": env.name, "table": table, "rows": [r["agent"] for r in rows]}
+    return {"env": env.name, "table": table, "rows": [r["agent"] for r in rows],
+            "random": chance}  # fmt: skip
+
+
+def random_policy(env_cfg: Any, seeds: list[int], episodes: int = 100) -> dict[str, float]:
+    """Return per episode of uniformly random actions on the environment of ``env_cfg``
+    (its observation maps left out: they do not change what happens), ``episodes`` episodes
+    spread over ``seeds`` (each seed resets its environment and seeds its action space):
+    the score of an agent that learns nothing, on the same seeds."""
+    from cdqn.envs import make_env
+
+    cfg = copy.deepcopy(env_cfg)
+    cfg.normalize, cfg.rbf_centres, cfg.obs_indices = False, None, None
+    env = make_env(cfg)
+    returns: list[float] = []
+    for i in range(episodes):
+        seed = seeds[i % len(seeds)]
+        first = i < len(seeds)
+        env.reset(seed=seed if first else None)
+        if first:
+            env.action_space.seed(seed)
+        total, done = 0.0, False
+        while not done:
+            _, reward, terminated, truncated, _ = env.step(env.action_space.sample())
+            total += float(reward)
+            done = terminated or truncated
+        returns.append(total)
+    env.close()
+    return {"mean": float(np.mean(returns)), "std": float(np.std(returns)), "episodes": episodes}
 
 
 def _other_agents(study: Any, mine: dict[str, Any]) -> list[dict[str, Any]]:
@@ -195,9 +224,15 @@ def _other_agents(study: Any, mine: dict[str, Any]) -> list[dict[str, Any]]:
     return list(rows.values())
 
 
-def comparison_table(rows: list[dict[str, Any]], threshold: float | None, episodes: int) -> str:
+def comparison_table(
+    rows: list[dict[str, Any]],
+    threshold: float | None,
+    episodes: int,
+    chance: dict[str, float] | None = None,
+) -> str:
     """Markdown: one row per agent, and whether each design reaches Double DQN's final score
-    minus one standard deviation on the same seeds.  An environment without a solve
+    minus one standard deviation on the same seeds; with ``chance`` (:func:`random_policy`),
+    how far each agent ends above a random policy.  An environment without a solve
     threshold (``env.solve_threshold=null``: none registered, none given) has no solve
     episode and no count of seeds that reach it (``n/a``)."""
     reach = "no solve threshold" if threshold is None else f"seeds ≥ {threshold:g}"
@@ -224,11 +259,19 @@ def comparison_table(rows: list[dict[str, Any]], threshold: float | None, episod
                 verdict = "reaches" if gap >= 0 else "falls short of"
                 lines.append(f"\n{r['agent']} {verdict} Double DQN's final score minus one std "
                              f"({bar:.{p}f}) by {abs(gap):.{p}f}.")  # fmt: skip
+    if chance is not None:
+        ends = ", ".join(f"{r['agent']} {r['final_score'] - chance['mean']:+.{p}f}" for r in rows)
+        lines.append(f"\nA random policy scores {chance['mean']:.{p}f} ± {chance['std']:.{p}f} "
+                     f"per episode ({chance['episodes']} episodes on the same seeds); final "
+                     f"score against it: {ends}.")  # fmt: skip
     return "\n".join(lines)
 
 
-def _figure(rows: list[dict[str, Any]], env: Any, out: Path) -> None:
-    """Mean MA100 over the seeds with ± one std, one line per agent."""
+def _figure(
+    rows: list[dict[str, Any]], env: Any, out: Path, chance: dict[str, float] | None = None
+) -> None:
+    """Mean MA100 over the seeds with ± one std, one line per agent; the solve threshold
+    dotted, a random policy's mean return dashed."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -244,6 +287,9 @@ def _figure(rows: list[dict[str, Any]], env: Any, out: Path) -> None:
         ax.fill_between(x, mean - std, mean + std, alpha=0.2)
     if env.solve_threshold is not None:
         ax.axhline(env.solve_threshold, color="grey", ls=":", lw=1)
+    if chance is not None:
+        ax.axhline(chance["mean"], color="black", ls="--", lw=1,
+                   label=f"random policy ({score_text(chance['mean'])})")  # fmt: skip
     ax.set_xlabel("episode")
     ax.set_ylabel("MA100 return, mean ± std")
     ax.set_title(f"{env.name}: tuned agents on fresh seeds")
