@@ -124,6 +124,10 @@ def design_inputs(
     )
 
 
+SIGMA_OMEGA = np.logspace(-3, 6, 300)
+"""Frequencies (rad/s) of a design's closed-loop singular values and weight plots."""
+
+
 @dataclass
 class ControllerDesign:
     """A synthesised, certified controller (continuous time)."""
@@ -280,8 +284,7 @@ def write_artifacts(design: ControllerDesign, folder: Path) -> None:
         header="omega,sigma_max,sigma_min",
         comments="",
     )
-    omega = np.logspace(-3, 6, 300)
-    plots.plot_weights(design.weights, omega, folder / "weights_bode.png")
+    plots.plot_weights(design.weights, SIGMA_OMEGA, folder / "weights_bode.png")
     if design.cover is not None:
         cv = design.cover
         plots.plot_cover(cv.omega, cv.sample_errors, cv.weight, cv.band, folder / "cover.png")

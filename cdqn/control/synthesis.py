@@ -35,6 +35,7 @@ import numpy as np
 from cdqn.control.certificate import Certificate, ControllerMatrices, certify
 from cdqn.control.design import (
     KINDS,
+    SIGMA_OMEGA,
     ControllerDesign,
     DesignInputs,
     cached_design,
@@ -185,8 +186,7 @@ def _design_hinf(inputs: DesignInputs, samples: np.ndarray, cover: CoverFit) -> 
     order0 = min(max(red.order_for(threshold), red.n_unstable), K_full.nstates)
     kept = _reduce_on_target(K_full, order0, inputs, samples)
     K = kept.K
-    omega = np.logspace(-3, 6, 300)
-    sv = sigma(lft_closed_loop(P, StateSpaceMatrices(K.A, K.B, K.C, K.D)), omega)
+    sv = sigma(lft_closed_loop(P, StateSpaceMatrices(K.A, K.B, K.C, K.D)), SIGMA_OMEGA)
     details = {
         "full_order": K_full.nstates,
         "order": K.nstates,
@@ -205,26 +205,41 @@ def _design_hinf(inputs: DesignInputs, samples: np.ndarray, cover: CoverFit) -> 
         if K.nstates
         else [],
     }
-    cover_w = weights.w_cover
+    cover_w = SisoWeight(weights.w_cover.num, weights.w_cover.den, "W_Δ·w_cover")
+    used = [weights.w_p, weights.w_u, weights.w_r, weights.w_qhat, cover_w]
+    return _record("hinf", K, res.gamma, inputs, kept.certificate, samples, cover, details,
+                   sv, used)  # fmt: skip
+
+
+def _record(
+    kind: str,
+    K: ControllerMatrices,
+    gamma: float,
+    inputs: DesignInputs,
+    certificate: Certificate,
+    samples: np.ndarray,
+    cover: CoverFit,
+    details: dict[str, Any],
+    sv: np.ndarray,
+    weights: list[SisoWeight],
+    gains: tuple[float, float, float] | None = None,
+) -> ControllerDesign:
+    """The record of a synthesised design; ``sv``: the singular values of its closed loop at
+    the nominal point over :data:`SIGMA_OMEGA` (largest and smallest kept)."""
     return ControllerDesign(
-        kind="hinf",
+        kind=kind,
         controller=K,
-        gamma=res.gamma,
+        gamma=gamma,
         box=inputs.box,
         discount=inputs.discount,
-        certificate=kept.certificate,
+        certificate=certificate,
         samples=samples,
+        gains=gains,
         cover=cover,
         details=details,
-        sigma_omega=omega,
+        sigma_omega=SIGMA_OMEGA.copy(),
         sigma=np.column_stack([sv[:, 0], sv[:, -1]]),
-        weights=[
-            weights.w_p,
-            weights.w_u,
-            weights.w_r,
-            weights.w_qhat,
-            SisoWeight(cover_w.num, cover_w.den, "W_Δ·w_cover"),
-        ],
+        weights=weights,
     )
 
 
@@ -326,12 +341,11 @@ def _design_hinf_f(inputs: DesignInputs, samples: np.ndarray, cover: CoverFit) -
     )
     K = ControllerMatrices.static(*res.gains)
     cert = _certify(K, inputs, samples)
-    omega = np.logspace(-3, 6, 300)
     nominal = PerformanceLoops(
-        np.asarray([inputs.box.nominal]), inputs.discount, weights, omega, syn["plant"]
+        np.asarray([inputs.box.nominal]), inputs.discount, weights, SIGMA_OMEGA, syn["plant"]
     )
     A, B, C, D = nominal.matrices(res.gains)
-    sv = sigma(StateSpaceMatrices(A[0], B[0], C[0], D), omega)
+    sv = sigma(StateSpaceMatrices(A[0], B[0], C[0], D), SIGMA_OMEGA)
     details = {
         "start": [float(v) for v in res.start],
         "start_source": start_source,
@@ -342,21 +356,9 @@ def _design_hinf_f(inputs: DesignInputs, samples: np.ndarray, cover: CoverFit) -
         "noise": list(noise),
         "plant": syn["plant"],
     }
-    return ControllerDesign(
-        kind="hinf_f",
-        controller=K,
-        gamma=res.worst_hinf,
-        box=inputs.box,
-        discount=inputs.discount,
-        certificate=cert,
-        samples=samples,
-        gains=res.gains,
-        cover=cover,
-        details=details,
-        sigma_omega=omega,
-        sigma=np.column_stack([sv[:, 0], sv[:, -1]]),
-        weights=[ws["w_p"], ws["w_u"], ws["w_r"], ws["w_qhat"]],
-    )
+    used = [ws["w_p"], ws["w_u"], ws["w_r"], ws["w_qhat"]]
+    return _record("hinf_f", K, res.worst_hinf, inputs, cert, samples, cover, details, sv,
+                   used, res.gains)  # fmt: skip
 
 
 def design_controller(inputs: DesignInputs) -> ControllerDesign:
