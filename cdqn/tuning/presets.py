@@ -15,8 +15,10 @@ ENV_KEYS = ("name", "id", "kwargs", "max_episode_steps", "obs_indices", "normali
             "eps_schedule")  # fmt: skip
 """The environment settings a preset carries (cap, threshold, kwargs, observation maps,
 exploration): a preset trains the environment it was tuned on, as it was tuned."""
-TRAIN_KEYS = ("lr", "discount", "eps_start", "eps_end", "eps_dec", "eps_schedule")
-"""The training settings a preset carries."""
+TRAIN_KEYS = ("episodes", "lr", "discount", "eps_start", "eps_end", "eps_dec", "eps_schedule")
+"""The training settings a preset carries: the episodes per member the study trained (its
+per-episode ε schedule is fitted to them), α and exploration; trained with the preset on the
+evaluation's seeds, it repeats the study's evaluation."""
 DDQN_KEYS = ("train_freq", "batch_size", "buffer_size", "learning_starts", "discount")
 """Double DQN's controller settings a preset carries."""
 
@@ -24,10 +26,10 @@ DDQN_KEYS = ("train_freq", "batch_size", "buffer_size", "learning_starts", "disc
 def write_preset(cfg: DictConfig, name: str, folder: Path, best: Any, tune: Any) -> Path:
     """``<folder>/weights/<name>.yaml``: the best trial's configuration as a weights preset in
     Hydra's global package, so that ``weights=<name>`` sets, besides the ``weights`` group,
-    the environment (id, kwargs, cap, threshold, observation maps, exploration), α and, for
-    Double DQN, its controller settings; a controlled agent's preset keeps the NTK box its
-    design was certified on (``controller.synthesis.ntk_bounds=config``).  ``extra.tuned``
-    records the study, its budget and its search space."""
+    the environment (id, kwargs, cap, threshold, observation maps, exploration), the episodes
+    per member, α and, for Double DQN, its controller settings; a controlled agent's preset
+    keeps the NTK box its design was certified on (``controller.synthesis.ntk_bounds=config``).
+    ``extra.tuned`` records the study, its budget and its search space."""
     plain = OmegaConf.to_container(cfg, resolve=True)
     assert isinstance(plain, dict)
     weights = dict(plain["weights"], name=name)
