@@ -38,8 +38,10 @@ class OneHot(gym.ObservationWrapper):
         assert parts is not None
         self.sizes = [n for n, _ in parts]
         self.starts = np.array([start for _, start in parts], dtype=np.int64)
+        self.first = int(self.starts[0])
         self.offsets = np.concatenate([[0], np.cumsum(self.sizes)[:-1]]).astype(np.int64)
-        self.observation_space = Box(0.0, 1.0, (int(sum(self.sizes)),), dtype=np.float32)
+        self.width = int(sum(self.sizes))
+        self.observation_space = Box(0.0, 1.0, (self.width,), dtype=np.float32)
 
     @staticmethod
     def encodes(space: Space) -> bool:
@@ -61,9 +63,9 @@ class OneHot(gym.ObservationWrapper):
         return None
 
     def observation(self, observation: object) -> np.ndarray:
-        out = np.zeros(int(sum(self.sizes)), dtype=np.float32)
+        out = np.zeros(self.width, dtype=np.float32)
         if isinstance(observation, int | np.integer):  # one Discrete
-            out[int(observation) - int(self.starts[0])] = 1.0
+            out[int(observation) - self.first] = 1.0
             return out
         parts = observation if isinstance(observation, tuple) else (observation,)
         values = np.concatenate([np.asarray(v, dtype=np.int64).reshape(-1) for v in parts])

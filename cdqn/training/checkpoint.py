@@ -302,9 +302,10 @@ def _sparse(a: np.ndarray) -> dict[str, Any] | None:
     if a.size < SPARSE_MIN or a.dtype.kind not in "fiub" or a.dtype.itemsize not in (1, 2, 4, 8):
         return None
     flat = np.ascontiguousarray(a).reshape(-1)
-    where = np.flatnonzero(flat.view(f"u{a.dtype.itemsize}"))
-    if len(where) > SPARSE_SHARE * a.size:
+    bits = flat.view(f"u{a.dtype.itemsize}")
+    if np.count_nonzero(bits) > SPARSE_SHARE * a.size:  # dense: no index array built
         return None
+    where = np.flatnonzero(bits)
     return {
         "__sparse__": torch.from_numpy(where),
         "values": torch.from_numpy(flat[where].copy()),
