@@ -743,6 +743,7 @@ def test_both_agents_tuned_alike_compared_and_their_presets_reproduce_the_settin
                           f"hydra.searchpath=[file://{tmp_path / 'presets'}]"])  # fmt: skip
         best = summary["best_params"]
         assert cfg.env.max_episode_steps == 60 and cfg.env.solve_threshold == 50
+        assert cfg.network.width == 16  # the network the study tuned on, not the default
         assert cfg.train.episodes == 8  # the study's episodes per member
         with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
             given = compose("config", overrides=[f"controller={agent}", f"weights={preset.stem}",

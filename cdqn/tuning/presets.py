@@ -19,6 +19,9 @@ TRAIN_KEYS = ("episodes", "lr", "discount", "eps_start", "eps_end", "eps_dec", "
 """The training settings a preset carries: the episodes per member the study trained (its
 per-episode ε schedule is fitted to them), α and exploration; trained with the preset on the
 evaluation's seeds, it repeats the study's evaluation."""
+NETWORK_KEYS = ("width", "dtype")
+"""The network a preset carries: its design's NTK box was measured on that network, and its
+α and exploration were tuned on it."""
 DDQN_KEYS = ("train_freq", "batch_size", "buffer_size", "learning_starts", "discount")
 """Double DQN's controller settings a preset carries."""
 
@@ -27,7 +30,8 @@ def write_preset(cfg: DictConfig, name: str, folder: Path, best: Any, tune: Any)
     """``<folder>/weights/<name>.yaml``: the best trial's configuration as a weights preset in
     Hydra's global package, so that ``weights=<name>`` sets, besides the ``weights`` group,
     the environment (id, kwargs, cap, threshold, observation maps, exploration), the episodes
-    per member, α and, for Double DQN, its controller settings; a controlled agent's preset
+    per member, α, the network's width and data type and, for Double DQN, its controller
+    settings; a controlled agent's preset
     keeps the NTK box its design was certified on (``controller.synthesis.ntk_bounds=config``).
     ``extra.tuned`` records the study, its budget and its search space."""
     plain = OmegaConf.to_container(cfg, resolve=True)
@@ -35,6 +39,7 @@ def write_preset(cfg: DictConfig, name: str, folder: Path, best: Any, tune: Any)
     weights = dict(plain["weights"], name=name)
     env = {k: plain["env"][k] for k in ENV_KEYS if k in plain["env"]}
     train = {k: plain["train"][k] for k in TRAIN_KEYS}
+    network = {k: plain["network"][k] for k in NETWORK_KEYS}
     controller: dict[str, Any] = {}
     agent = str(plain["controller"]["name"])
     if agent == "ddqn":
@@ -49,8 +54,8 @@ def write_preset(cfg: DictConfig, name: str, folder: Path, best: Any, tune: Any)
                   for k, p in tune.space.items()},
         "specification": best.params,
     }  # fmt: skip
-    preset = {"weights": weights, "env": env, "train": train, "controller": controller,
-              "extra": {"tuned": tuned}}  # fmt: skip
+    preset = {"weights": weights, "env": env, "train": train, "network": network,
+              "controller": controller, "extra": {"tuned": tuned}}  # fmt: skip
     out = folder / "weights" / f"{name}.yaml"
     out.parent.mkdir(parents=True, exist_ok=True)
     header = [
