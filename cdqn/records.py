@@ -182,7 +182,7 @@ class Tag:
     STUDY: Final = "study"
     """Name of the tuning study (``tune.study``)."""
     KIND: Final = "kind"
-    """Role of a tuning run: ``tune`` (parent), ``trial``, ``evaluation``, ..."""
+    """Role of a tuning run: ``tune`` (parent), ``trial``, ``recheck``, ``evaluation``, ..."""
     TRIAL_STATUS: Final = "trial_status"
     """How a tuning trial ended: complete, pruned or failed."""
     STOPPED: Final = "stopped"

@@ -267,6 +267,21 @@ def test_study_end_to_end_resume_and_preset(tmp_path: Path) -> None:
     assert ev["seeds"] == [1000, 1001] and np.isfinite(ev["objective"])
     assert "best trial" in summary_text(second)
 
+    # the best complete trials are trained again on seeds of their own; the best J over
+    # all its seeds is chosen, and a second close reuses the first's rechecks
+    rows = second["recheck"]
+    complete = [tr for tr in study.trials if tr.state == optuna.trial.TrialState.COMPLETE]
+    assert len(rows) == min(3, len(complete)) >= 2
+    for row in rows:
+        assert row["all"] == pytest.approx((2 * row["objective"] + 4 * row["recheck"]) / 6)
+    assert second["best_trial"] == max(rows, key=lambda row: row["all"])["trial"]
+    assert second["best_value"] == pytest.approx(study.trials[second["best_trial"]].value)
+    rechecks = _runs(tmp_path, kind="recheck")
+    names = sorted(r.info.run_name for r in rechecks)
+    assert len(names) == len(set(names)) >= len(rows)  # each trial rechecked once
+    assert {r.data.tags["seeds"] for r in rechecks} == {"200-203"}
+    assert "recheck of trial" in summary_text(second)
+
     # the preset trains with python -m cdqn.train weights=<name>
     preset = Path(second["preset"])
     assert preset == tmp_path / "presets" / "weights" / "tuned_tiny.yaml"
@@ -369,6 +384,14 @@ def test_cli_refuses_overlapping_seeds(tmp_path: Path) -> None:
     proc = run_cli("cdqn.tune", ["tune.seed=0", "tune.seeds=3", "tune.eval_seed=2"], tmp_path)
     assert proc.returncode == 2
     assert "tune.eval_seed=2" in proc.stderr and "overlap" in proc.stderr
+    assert not (tmp_path / "optuna.db").exists()
+
+
+def test_cli_refuses_recheck_seeds_that_overlap(tmp_path: Path) -> None:
+    proc = run_cli("cdqn.tune", ["tune.recheck_seed=1005"], tmp_path)
+    assert proc.returncode == 2
+    assert "tune.recheck_seed=1005" in proc.stderr and "overlap" in proc.stderr
+    assert "Traceback" not in proc.stderr
     assert not (tmp_path / "optuna.db").exists()
 
 

@@ -64,6 +64,12 @@ def test_the_estimate_is_one_median_trial_and_the_evaluation_at_the_slowest_comp
     assert with_baseline is not None
     assert with_baseline.evaluation == pytest.approx(2 * (tau * 1000 + start))
     assert estimate(trials, EvaluationSize(0, 1, 200, 1)).evaluation == 0.0  # no evaluation
+    # three rechecks of 4 seeds, 2 per process, before the evaluation
+    rechecked = estimate(trials, EvaluationSize(10, 2, 200, 1, rechecks=3, recheck_seeds=4))
+    assert rechecked is not None
+    assert rechecked.evaluation == pytest.approx(3 * (tau * 2 * 200 + start) + tau * 1000 + start)
+    one = estimate(trials, EvaluationSize(10, 2, 200, 1, rechecks=1, recheck_seeds=4))
+    assert one is not None and one.evaluation == pytest.approx(tau * 1000 + start)  # no choice
     assert estimate(trials[3:], size) is None  # before any trial trained: no estimate
 
 

@@ -1,8 +1,9 @@
 """The study's wall-time budget (``tune.time_limit``): whether a worker may start another
 trial, and when a running one stops.
 
-The whole study — its trials, then the evaluation on fresh seeds (and ``tune.baseline``) —
-is to end within ``tune.time_limit`` seconds of its start.  Three rules keep it there.
+The whole study — its trials, the rechecks of the best ones, then the evaluation on fresh
+seeds (and ``tune.baseline``) — is to end within ``tune.time_limit`` seconds of its start.
+Three rules keep it there.
 
 * **A trial trains for at most T_cap = tune.trial_share · tune.time_limit** (a quarter by
   default); one still training then stops at its members' next episode ends and is pruned
@@ -24,7 +25,9 @@ is to end within ``tune.time_limit`` seconds of its start.  Three rules keep it 
     whatever the limit (a limit below T_rest alone is *too small* for one trial, and the
     study says so);
   - T_eval, the evaluation: τ · ⌈eval_seeds / processes⌉ · episodes + T_start, twice that
-    with a ``tune.baseline``, which trains the same seeds again; τ is the wall time per
+    with a ``tune.baseline``, which trains the same seeds again, and before it each recheck
+    of the best trials (``tune.recheck_trials`` × τ · ⌈recheck_seeds / processes⌉ ·
+    episodes + T_start); τ is the wall time per
     member-episode (each trial records the episodes its members played,
     ``member_episodes``) of the slowest complete trial that played a quarter of its
     member-episodes (:data:`PACE_SHARE`), since the best specification is the one evaluated
@@ -174,16 +177,25 @@ class EvaluationSize:
     """K, the members of a trial's population (``tune.seeds``)."""
     trial_cap: float | None = None
     """T_cap, the most seconds a trial trains (None: no cap)."""
+    rechecks: int = 0
+    """Trials trained again before one is chosen (``tune.recheck_trials``; 0: none)."""
+    recheck_seeds: int = 0
+    """Seeds of each recheck, split over ``processes`` as the evaluation's are."""
 
-    def per_process(self) -> int:
-        """Members each evaluation process trains."""
-        return math.ceil(self.seeds / max(1, self.processes)) if self.seeds else 0
+    def per_process(self, seeds: int | None = None) -> int:
+        """Members each process trains for ``seeds`` seeds (default: the evaluation's)."""
+        n = self.seeds if seeds is None else seeds
+        return math.ceil(n / max(1, min(self.processes, n))) if n else 0
 
     def seconds(self, tau: float) -> float:
-        """T_eval at τ seconds per member-episode."""
-        if not self.seeds:
-            return 0.0
-        return (tau * self.per_process() * self.episodes + START_ALLOWANCE) * self.runs
+        """T_eval at τ seconds per member-episode: the rechecks, then the evaluation."""
+        out = 0.0
+        if self.rechecks > 1 and self.recheck_seeds:
+            per = self.per_process(self.recheck_seeds)
+            out += (tau * per * self.episodes + START_ALLOWANCE) * self.rechecks
+        if self.seeds:
+            out += (tau * self.per_process() * self.episodes + START_ALLOWANCE) * self.runs
+        return out
 
 
 def estimate(trials: list[Any], size: EvaluationSize) -> Estimate | None:

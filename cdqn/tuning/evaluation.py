@@ -33,17 +33,18 @@ RETURNS = Artifact.EVALUATION_RETURNS
 """Artifact of an evaluation run: ``{seed: [return per episode]}``."""
 
 
-def evaluate(study: Any, cfg: DictConfig, name: str) -> dict[str, Any]:
-    """Train ``cfg`` on the fresh seeds; its objective, final score and per-seed returns.
-    The seeds are split into ``tune.eval_processes`` populations trained side by side (one
-    per core by default); each member's returns are read back from the store."""
+def evaluate(study: Any, cfg: DictConfig, name: str, kind: str = "evaluation") -> dict[str, Any]:
+    """Train ``cfg`` on its seeds (the fresh ones; a recheck's, ``kind=recheck``); its
+    objective, final score and per-seed returns.  The seeds are split into
+    ``tune.eval_processes`` populations trained side by side (one per core by default); each
+    member's returns are read back from the store."""
     from cdqn.training.divergence import is_divergence
 
     conf, tracker = study.conf, study.tracker
     agent = str(cfg.controller.name)
     tags = {"study": conf.tune.study, "agent": agent, "env": conf.env.name,
             "episodes": str(study.episodes), "seeds": _seeds_tag(cfg)}  # fmt: skip
-    run = tracker.child(study.parent, name, tags, kind="evaluation")
+    run = tracker.child(study.parent, name, tags, kind=kind)
     t0 = time.perf_counter()
     members = _train_split(cfg, eval_processes(conf.tune.eval_processes, int(cfg.train.population)))
     ids = [r.run_id for r in members]

@@ -93,6 +93,13 @@ class TuneSettings:
     """Fresh seeds of the final evaluation of the best specification (0: none)."""
     eval_seed: int = 1000
     """First seed of the evaluation; its seeds must not overlap the trials' seeds."""
+    recheck_trials: int = 3
+    """The best complete trials (by J) trained again on ``recheck_seeds`` more seeds before
+    the study chooses one (:meth:`cdqn.tuning.study.Study.choose`); 0 or 1: the best by J."""
+    recheck_seeds: int = 4
+    """Seeds of each recheck: ``recheck_seed`` … ``recheck_seed + recheck_seeds − 1``."""
+    recheck_seed: int = 200
+    """First seed of the rechecks; disjoint from the trials' and the evaluation's seeds."""
     explore_share: float = 0.2
     """The per-episode ε schedule reaches its floor no earlier than this share of the
     episodes (:func:`cdqn.tuning.space.fit_to_budget`); 0: the space's range as written."""
@@ -169,6 +176,8 @@ def validate_tune(conf: TuneConfig) -> None:
                            ("steps", t.steps, 1), ("min_episodes", t.min_episodes, 1),
                            ("max_episodes", t.max_episodes, t.min_episodes),
                            ("eval_seeds", t.eval_seeds, 0),
+                           ("recheck_trials", t.recheck_trials, 0),
+                           ("recheck_seeds", t.recheck_seeds, 0),
                            ("eval_processes", t.eval_processes, 0),
                            ("max_rbf_features", t.max_rbf_features, 1),
                            ("pruner.interval", t.pruner.interval, 1),
@@ -192,6 +201,13 @@ def validate_tune(conf: TuneConfig) -> None:
         errors.append(
             f"tune.eval_seed={t.eval_seed}: evaluation seeds {t.eval_seed}..{last}"
             f" overlap the trials' seeds {t.seed}..{t.seed + t.seeds - 1}; choose fresh seeds"
+        )
+    again = set(range(t.recheck_seed, t.recheck_seed + t.recheck_seeds))
+    if t.recheck_trials > 1 and again & (trial | fresh):
+        last = t.recheck_seed + t.recheck_seeds - 1
+        errors.append(
+            f"tune.recheck_seed={t.recheck_seed}: recheck seeds {t.recheck_seed}..{last} overlap "
+            "the trials' or the evaluation's seeds; choose seeds of their own"
         )
     if not t.space:
         errors.append("tune.space: empty; give at least one dimension")
