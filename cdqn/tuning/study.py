@@ -324,7 +324,7 @@ class Study:
         k, r = t.seeds, t.recheck_seeds
         rows = []
         for tr in finalists:
-            key = f"recheck_{tr.number}"
+            key = f"recheck_{tr.number}_seeds_{t.recheck_seed}_{r}"
             j = study.user_attrs.get(key)
             if j is None:
                 cfg = self.specified(tr.params, t.recheck_seed, r)
