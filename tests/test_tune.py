@@ -88,6 +88,11 @@ def _overrides(tmp: Path, study: str, trials: int, extra: list[str] | None = Non
         "~tune.space.w_p",
         *ONLY_TARGET,
         "controller.synthesis.ntk_bounds=config",  # CartPole's box: 1/ρ_max = 1/1.2
+        *(
+            []
+            if any(e.startswith("tune.recheck_trials=") for e in extra or [])
+            else ["tune.recheck_trials=0"]
+        ),  # rechecks where a test asks for them
         *(extra or []),
     ]
 
@@ -233,11 +238,11 @@ def test_a_stale_trial_is_retried_with_its_specification(monkeypatch, tmp_path: 
 
 @pytest.mark.slow
 def test_study_end_to_end_resume_and_preset(tmp_path: Path) -> None:
-    first = _study(_overrides(tmp_path, "tiny", 2))
+    first = _study(_overrides(tmp_path, "tiny", 2, ["tune.recheck_trials=3"]))
     assert sum(first["counts"].values()) == 2
     parent = first["parent_run"]
     # run again with more trials: the same study (storage) and parent run continue
-    second = _study(_overrides(tmp_path, "tiny", 3))
+    second = _study(_overrides(tmp_path, "tiny", 3, ["tune.recheck_trials=3"]))
     assert second["parent_run"] == parent
     study = optuna.load_study(study_name="tiny", storage=f"sqlite:///{tmp_path / 'optuna.db'}")
     assert len(study.trials) == 3
