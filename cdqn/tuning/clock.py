@@ -1,9 +1,10 @@
 """The study's wall-time budget (``tune.time_limit``): whether a worker may start another
 trial, and when a running one stops.
 
-The whole study — its trials, the rechecks of the best ones, then the evaluation on fresh
-seeds (and ``tune.baseline``) — is to end within ``tune.time_limit`` seconds of its start.
-Three rules keep it there.
+The whole study — its trials, then the evaluation on fresh seeds (and ``tune.baseline``) —
+is to end within ``tune.time_limit`` seconds of its start.  Three rules keep it there.  The
+rechecks of the best trials run in the time the trials leave: each starts only when it and
+the evaluation still end within the limit (:meth:`EvaluationSize.time_for_recheck`).
 
 * **A trial trains for at most T_cap = tune.trial_share · tune.time_limit** (a quarter by
   default); one still training then stops at its members' next episode ends and is pruned
@@ -25,9 +26,7 @@ Three rules keep it there.
     whatever the limit (a limit below T_rest alone is *too small* for one trial, and the
     study says so);
   - T_eval, the evaluation: τ · ⌈eval_seeds / processes⌉ · episodes + T_start, twice that
-    with a ``tune.baseline``, which trains the same seeds again, and before it each recheck
-    of the best trials (``tune.recheck_trials`` × τ · ⌈recheck_seeds / processes⌉ ·
-    episodes + T_start); τ is the wall time per
+    with a ``tune.baseline``, which trains the same seeds again; τ is the wall time per
     member-episode (each trial records the episodes its members played,
     ``member_episodes``) of the slowest complete trial that played a quarter of its
     member-episodes (:data:`PACE_SHARE`), since the best specification is the one evaluated
@@ -188,14 +187,27 @@ class EvaluationSize:
         return math.ceil(n / max(1, min(self.processes, n))) if n else 0
 
     def seconds(self, tau: float) -> float:
-        """T_eval at τ seconds per member-episode: the rechecks, then the evaluation."""
-        out = 0.0
-        if self.rechecks > 1 and self.recheck_seeds:
-            per = self.per_process(self.recheck_seeds)
-            out += (tau * per * self.episodes + START_ALLOWANCE) * self.rechecks
-        if self.seeds:
-            out += (tau * self.per_process() * self.episodes + START_ALLOWANCE) * self.runs
-        return out
+        """T_eval at τ seconds per member-episode."""
+        if not self.seeds:
+            return 0.0
+        return (tau * self.per_process() * self.episodes + START_ALLOWANCE) * self.runs
+
+    def recheck_seconds(self, tau: float) -> float:
+        """One recheck at τ seconds per member-episode (0 without recheck seeds)."""
+        if not self.recheck_seeds:
+            return 0.0
+        return tau * self.per_process(self.recheck_seeds) * self.episodes + START_ALLOWANCE
+
+    def time_for_recheck(self, study: Any, elapsed: float, limit: float | None) -> bool:
+        """Whether one more recheck and then the evaluation end within ``limit``, at the pace
+        of :func:`estimate` (rechecks use time the trials left; they are never reserved)."""
+        if limit is None:
+            return True
+        est = estimate(study.get_trials(deepcopy=False), self)
+        if est is None:
+            return False
+        tau = est.per_member_episode
+        return elapsed + self.recheck_seconds(tau) + self.seconds(tau) <= limit
 
 
 def estimate(trials: list[Any], size: EvaluationSize) -> Estimate | None:

@@ -311,9 +311,8 @@ class Study:
         :func:`cdqn.tuning.objective.area`).  A recheck
         whose member diverged ranks last.  Each recheck is an MLflow child run
         (``kind=recheck``) and its J is kept in the study, so a resumed close does not train it
-        again.  The clock keeps time for the rechecks as for the evaluation
-        (:mod:`cdqn.tuning.clock`).  With fewer than two complete trials or no recheck seeds,
-        the best trial by J."""
+        again.  A recheck starts only when it and the evaluation still fit ``tune.time_limit``
+        (:mod:`cdqn.tuning.clock`).  With fewer than two trials rechecked, the best by J."""
         from optuna.trial import TrialState
 
         t = self.conf.tune
@@ -327,6 +326,10 @@ class Study:
             key = f"recheck_{tr.number}_seeds_{t.recheck_seed}_{r}"
             j = study.user_attrs.get(key)
             if j is None:
+                if not self.clock.size.time_for_recheck(study, self.clock.elapsed(), t.time_limit):
+                    log.info("no time left for the recheck of trial %d (tune.time_limit)",
+                             tr.number)  # fmt: skip
+                    break
                 cfg = self.specified(tr.params, t.recheck_seed, r)
                 j = evaluate(self, cfg, f"recheck-trial-{tr.number}", kind="recheck")["objective"]
                 study.set_user_attr(key, j)
@@ -335,8 +338,10 @@ class Study:
             log.info("recheck of trial %d on seeds %d..%d: J = %.4g; over its %d seeds J = %.4g",
                      tr.number, t.recheck_seed, t.recheck_seed + r - 1, j, k + r,
                      both)  # fmt: skip
-        chosen = max(rows, key=lambda row: row["all"])
         summary["recheck"] = rows
+        if len(rows) < 2:  # nothing to choose between
+            return study.best_trial
+        chosen = max(rows, key=lambda row: row["all"])
         self.tracker.client.set_tag(self.parent, "chosen_by", "recheck")
         return next(tr for tr in finalists if tr.number == chosen["trial"])
 
