@@ -31,8 +31,8 @@ def write_preset(cfg: DictConfig, name: str, folder: Path, best: Any, tune: Any)
     Hydra's global package, so that ``weights=<name>`` sets, besides the ``weights`` group,
     the environment (id, kwargs, cap, threshold, observation maps, exploration), the episodes
     per member, α, the network's width and data type and, for Double DQN, its controller
-    settings; a controlled agent's preset
-    keeps the NTK box its design was certified on (``controller.synthesis.ntk_bounds=config``).
+    settings; a controlled agent's preset keeps the NTK box its design was certified on
+    (``controller.synthesis.ntk_bounds=config``).
     ``extra.tuned`` records the study, its budget and its search space."""
     plain = OmegaConf.to_container(cfg, resolve=True)
     assert isinstance(plain, dict)

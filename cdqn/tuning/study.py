@@ -308,11 +308,11 @@ class Study:
         .. math::  J_{\\rm all} = (K\\,J_{\\rm trial} + R\\,J_{\\rm recheck}) / (K + R)
 
         (K trial seeds, R recheck seeds; J is a mean over seeds,
-        :func:`cdqn.tuning.objective.area`).  A recheck
-        whose member diverged ranks last.  Each recheck is an MLflow child run
-        (``kind=recheck``) and its J is kept in the study, so a resumed close does not train it
-        again.  A recheck starts only when it and the evaluation still fit ``tune.time_limit``
-        (:mod:`cdqn.tuning.clock`).  With fewer than two trials rechecked, the best by J."""
+        :func:`cdqn.tuning.objective.area`; a recheck without a J ranks last).  Each recheck is
+        an MLflow child run (``kind=recheck``) and its J is kept in the study, so a resumed
+        close does not train it again.  A recheck starts only when it and the evaluation still
+        fit ``tune.time_limit`` (:mod:`cdqn.tuning.clock`).  With fewer than two trials
+        rechecked, the best by J."""
         from optuna.trial import TrialState
 
         t = self.conf.tune
@@ -342,7 +342,6 @@ class Study:
         if len(rows) < 2:  # nothing to choose between
             return study.best_trial
         chosen = max(rows, key=lambda row: row["all"])
-        self.tracker.client.set_tag(self.parent, "chosen_by", "recheck")
         return next(tr for tr in finalists if tr.number == chosen["trial"])
 
     def _evaluate(self, cfg: DictConfig, summary: dict[str, Any], metrics: dict) -> None:
