@@ -65,7 +65,7 @@ def test_the_estimate_is_one_median_trial_and_the_evaluation_at_the_slowest_comp
     assert with_baseline.evaluation == pytest.approx(2 * (tau * 1000 + start))
     assert estimate(trials, EvaluationSize(0, 1, 200, 1)).evaluation == 0.0  # no evaluation
     # rechecks are not reserved: they run in the time the trials leave
-    rechecked = EvaluationSize(10, 2, 200, 1, rechecks=3, recheck_seeds=4)
+    rechecked = EvaluationSize(10, 2, 200, 1, recheck_seeds=4)
     assert estimate(trials, rechecked).evaluation == pytest.approx(tau * 1000 + start)
     assert rechecked.recheck_seconds(tau) == pytest.approx(tau * 2 * 200 + start)  # 2 per core
     assert estimate(trials[3:], size) is None  # before any trial trained: no estimate
@@ -73,7 +73,7 @@ def test_the_estimate_is_one_median_trial_and_the_evaluation_at_the_slowest_comp
 
 def test_a_recheck_starts_only_when_it_and_the_evaluation_fit_the_limit() -> None:
     study = optuna.create_study()
-    size = EvaluationSize(10, 2, 200, 1, rechecks=3, recheck_seeds=4)
+    size = EvaluationSize(10, 2, 200, 1, recheck_seeds=4)
     assert not size.time_for_recheck(study, 0.0, 1000.0)  # no pace to judge by yet
     study.add_trial(_trial(0, 30.0, 600, TrialState.COMPLETE))  # τ 0.05 s
     need = size.recheck_seconds(0.05) + size.seconds(0.05)  # 20 + 50 s and two starts

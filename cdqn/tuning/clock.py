@@ -176,8 +176,6 @@ class EvaluationSize:
     """K, the members of a trial's population (``tune.seeds``)."""
     trial_cap: float | None = None
     """T_cap, the most seconds a trial trains (None: no cap)."""
-    rechecks: int = 0
-    """Trials trained again before one is chosen (``tune.recheck_trials``; 0: none)."""
     recheck_seeds: int = 0
     """Seeds of each recheck, split over ``processes`` as the evaluation's are."""
 
