@@ -89,12 +89,17 @@ def _overrides(tmp: Path, study: str, trials: int, extra: list[str] | None = Non
         *ONLY_TARGET,
         "controller.synthesis.ntk_bounds=config",  # CartPole's box: 1/ρ_max = 1/1.2
         *(
-            []
-            if any(e.startswith("tune.recheck_trials=") for e in extra or [])
-            else ["tune.recheck_trials=0"]
-        ),  # rechecks where a test asks for them
+            f"{k}={v}"
+            for k, v in TEST_DEFAULTS.items()
+            if not any(e.startswith(f"{k}=") for e in extra or [])
+        ),  # the test's own value where it gives one
         *(extra or []),
     ]
+
+
+TEST_DEFAULTS = {"tune.recheck_trials": 0, "tune.eval_processes": 1}
+"""What a test study does unless the test asks otherwise: no rechecks, and its evaluation
+in the study's own process (the end-to-end test trains them, split over processes)."""
 
 
 def _study(overrides: list[str]) -> dict:
@@ -236,13 +241,17 @@ def test_a_stale_trial_is_retried_with_its_specification(monkeypatch, tmp_path: 
     assert [t.state.name for t in study.get_trials()] == ["FAIL", "FAIL"]  # once only
 
 
+SPLIT = ["tune.recheck_trials=3", "tune.eval_processes=0"]
+"""The end-to-end test's rechecks, and its evaluations split over one process per core."""
+
+
 @pytest.mark.slow
 def test_study_end_to_end_resume_and_preset(tmp_path: Path) -> None:
-    first = _study(_overrides(tmp_path, "tiny", 2, ["tune.recheck_trials=3"]))
+    first = _study(_overrides(tmp_path, "tiny", 2, SPLIT))
     assert sum(first["counts"].values()) == 2
     parent = first["parent_run"]
     # run again with more trials: the same study (storage) and parent run continue
-    second = _study(_overrides(tmp_path, "tiny", 3, ["tune.recheck_trials=3"]))
+    second = _study(_overrides(tmp_path, "tiny", 3, SPLIT))
     assert second["parent_run"] == parent
     study = optuna.load_study(study_name="tiny", storage=f"sqlite:///{tmp_path / 'optuna.db'}")
     assert len(study.trials) == 3
@@ -272,14 +281,18 @@ def test_study_end_to_end_resume_and_preset(tmp_path: Path) -> None:
     assert ev["seeds"] == [1000, 1001] and np.isfinite(ev["objective"])
     assert "best trial" in summary_text(second)
 
-    # the best complete trials are trained again on seeds of their own; the best J over
-    # all its seeds is chosen, and a second close reuses the first's rechecks
+    # the best complete trials by J are trained again on seeds of their own; the best final
+    # score over all its seeds is chosen, and a second close reuses the first's rechecks
     rows = second["recheck"]
     complete = [tr for tr in study.trials if tr.state == optuna.trial.TrialState.COMPLETE]
     assert len(rows) == min(3, len(complete)) >= 2
+    by_number = {tr.number: tr for tr in study.trials}
     for row in rows:
         assert row["all"] == pytest.approx((2 * row["objective"] + 4 * row["recheck"]) / 6)
-    assert second["best_trial"] == max(rows, key=lambda row: row["all"])["trial"]
+        assert row["final"] == by_number[row["trial"]].user_attrs["final_score"]
+        both = (2 * row["final"] + 4 * row["recheck_final"]) / 6
+        assert row["final_all"] == pytest.approx(both)
+    assert second["best_trial"] == max(rows, key=lambda r: (r["final_all"], r["all"]))["trial"]
     assert second["best_value"] == pytest.approx(study.trials[second["best_trial"]].value)
     rechecks = _runs(tmp_path, kind="recheck")
     names = sorted(r.info.run_name for r in rechecks)
@@ -553,6 +566,34 @@ def _unlike(value: object, p: ParamSpec) -> object:
     return round(mid) if p.integer else mid
 
 
+def test_the_rechecked_trial_with_the_best_final_score_over_its_seeds_is_chosen(
+    tmp_path: Path,
+) -> None:
+    """Of the trials rechecked, the one that ends best over its trial and recheck seeds is
+    chosen, not the one with the largest J: a trial that learns fast and falls back loses to
+    one that holds what it learned (rechecks taken from the study, none trained)."""
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        cfg = compose("tune", overrides=[*_overrides(tmp_path, "choice", 1)[:5],
+                                         "controller=ddqn", "tune.recheck_trials=3"])  # fmt: skip
+    chooser = Study(cfg)
+    study = optuna.create_study(direction="maximize")
+    # (J, final score) on the 3 trial seeds and on the 4 recheck seeds
+    scores = {0: (340.0, 377.0, 335.0, 410.0), 1: (320.0, 499.0, 345.0, 482.0),
+              2: (300.0, 500.0, 200.0, 300.0), 3: (100.0, 500.0, None, None)}  # fmt: skip
+    for number, (j, final, j_re, final_re) in scores.items():
+        study.add_trial(optuna.trial.create_trial(value=j, params={}, distributions={},
+                                                  user_attrs={"final_score": final}))  # fmt: skip
+        if j_re is not None:
+            study.set_user_attr(f"recheck_{number}_seeds_200_4",
+                                {"objective": j_re, "final_score": final_re})  # fmt: skip
+    summary: dict = {}
+    assert chooser.choose(study, summary).number == 1  # final over 7 seeds: 489.3
+    rows = {row["trial"]: row for row in summary["recheck"]}
+    assert sorted(rows) == [0, 1, 2]  # the three best by J; trial 3 is not rechecked
+    assert rows[0]["all"] > rows[1]["all"]  # trial 0 has the best J over its seeds
+    assert rows[1]["final_all"] == pytest.approx((3 * 499.0 + 4 * 482.0) / 7)
+
+
 @pytest.mark.parametrize("agent", ["ddqn", "hinf_f"])
 def test_every_key_that_reads_a_searched_one_follows_the_specification(
     agent: str, tmp_path: Path
@@ -744,6 +785,7 @@ def test_both_agents_tuned_alike_compared_and_their_presets_reproduce_the_settin
         "env=cartpole", "env.max_episode_steps=60", "env.solve_threshold=50",
         "network.width=16", "tune.trials=2", "tune.seeds=2", "tune.episodes=8",
         "tune.eval_seeds=2", "tune.pruner.kind=none", "controller.learning_starts=50",
+        *(f"{k}={v}" for k, v in TEST_DEFAULTS.items()),
     ]  # fmt: skip
     _store(f"sqlite:///{tmp_path / 'mlflow.db'}", "cdqn-tune", tmp_path)
     design = _study([*common, "controller=hinf_f", "tune.space.gamma_eff.choices=[-1.5,-0.5]"])

@@ -104,6 +104,7 @@ def test_a_tuple_observation_environment_without_cap_or_threshold_is_tuned_as_it
         f"tracking.uri={uri}", f"tune.storage=sqlite:///{tmp_path / 'optuna.db'}",
         f"tune.preset_dir={tmp_path / 'presets'}", "network.width=16", "tune.trials=1",
         "tune.seeds=2", "tune.episodes=6", "tune.eval_seeds=2", "tune.pruner.kind=none",
+        "tune.eval_processes=1",
     ])  # fmt: skip
     assert summary["study"] == "Blackjack-v1-ddqn" and summary["counts"]["complete"] == 1
     assert "no solve threshold" in summary["comparison"]["table"]

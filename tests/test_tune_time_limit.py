@@ -253,7 +253,7 @@ def test_a_limit_of_a_few_trials_stops_a_ten_trial_study_before_its_evaluation(
                                                        "tune.eval_seeds=0"]))  # fmt: skip
     assert "stopped" not in first
     trials = optuna.load_study(study_name="limited", storage=storage).trials
-    est = estimate(trials, EvaluationSize(seeds=2, processes=eval_processes(0, 2), episodes=12,
+    est = estimate(trials, EvaluationSize(seeds=2, processes=eval_processes(1, 2), episodes=12,
                                           runs=1))  # fmt: skip
     assert est is not None
     limit = round(est.evaluation + 2.5 * est.trial)

@@ -93,9 +93,10 @@ def summary_text(s: dict[str, Any]) -> str:
     if "no_result" in s:
         lines.append(f"{s['no_result']}; no preset written")
     for row in s.get("recheck", []):
+        finals = ", ".join(score_text(row[k]) for k in ("final", "recheck_final", "final_all"))
         lines.append(f"recheck of trial {row['trial']}: J = {row['objective']:.4g} on the trial's "
                      f"seeds, {row['recheck']:.4g} on the recheck's, {row['all']:.4g} over "
-                     "both")  # fmt: skip
+                     f"both; final MA100 {finals}")  # fmt: skip
     if "best_trial" in s:
         final = score_text(s["best_final_score"])
         lines.append(f"best trial {s['best_trial']}: J = {s['best_value']:.2f} (final MA100 "

@@ -37,6 +37,7 @@ from cdqn.records import Tag
 from cdqn.training.interrupt import GracefulStop
 from cdqn.tuning.clock import CAPPED, MEMBER_EPISODES, EvaluationSize, StudyClock, recorded_stop
 from cdqn.tuning.evaluation import eval_processes, evaluate, write_comparison
+from cdqn.tuning.objective import score_text
 from cdqn.tuning.presets import write_preset
 from cdqn.tuning.report import log_design, plot_study
 from cdqn.tuning.settings import TuneConfig, episode_budget, trial_cap, validate_tune
@@ -300,19 +301,21 @@ class Study:
         return summary
 
     def choose(self, study: Any, summary: dict[str, Any]) -> Any:
-        """The trial the study stands by.  Three tuning seeds rarely show a specification
-        that leaves one seed in ten on a poor policy, and J ranks by them alone; so the
-        ``tune.recheck_trials`` best complete trials are trained again on ``tune.recheck_seeds``
-        seeds of their own, and the one with the best J over all its seeds is chosen,
+        """The trial the study stands by.  J ranks the trials by the three tuning seeds alone,
+        and by how fast they learn as much as by where they end; so the
+        ``tune.recheck_trials`` best complete trials by J are trained again on
+        ``tune.recheck_seeds`` seeds of their own, and the one with the best final score over
+        all its seeds is chosen (J over them breaks a tie),
 
-        .. math::  J_{\\rm all} = (K\\,J_{\\rm trial} + R\\,J_{\\rm recheck}) / (K + R)
+        .. math::  F_{\rm all} = (K\,F_{\rm trial} + R\,F_{\rm recheck}) / (K + R),
+                   \quad J_{\rm all} = (K\,J_{\rm trial} + R\,J_{\rm recheck}) / (K + R)
 
-        (K trial seeds, R recheck seeds; J is a mean over seeds,
-        :func:`cdqn.tuning.objective.area`; a recheck without a J ranks last).  Each recheck is
-        an MLflow child run (``kind=recheck``) and its J is kept in the study, so a resumed
-        close does not train it again.  A recheck starts only when it and the evaluation still
-        fit ``tune.time_limit`` (:mod:`cdqn.tuning.clock`).  With fewer than two trials
-        rechecked, the best by J."""
+        (K trial seeds, R recheck seeds; F is the mean over seeds of the MA100 of the last
+        episode, J the mean area, :func:`cdqn.tuning.objective.area`; a recheck without a
+        score ranks last).  Each recheck is an MLflow child run (``kind=recheck``) and its
+        scores are kept in the study, so a resumed close does not train it again.  A recheck
+        starts only when it and the evaluation still fit ``tune.time_limit``
+        (:mod:`cdqn.tuning.clock`).  With fewer than two trials rechecked, the best by J."""
         from optuna.trial import TrialState
 
         t = self.conf.tune
@@ -320,29 +323,46 @@ class Study:
         finalists = sorted(done, key=lambda tr: tr.value, reverse=True)[: t.recheck_trials]
         if len(finalists) < 2 or t.recheck_seeds < 1:
             return study.best_trial
-        k, r = t.seeds, t.recheck_seeds
         rows = []
         for tr in finalists:
-            key = f"recheck_{tr.number}_seeds_{t.recheck_seed}_{r}"
-            j = study.user_attrs.get(key)
-            if j is None:
+            key = f"recheck_{tr.number}_seeds_{t.recheck_seed}_{t.recheck_seeds}"
+            scores = study.user_attrs.get(key)
+            if not isinstance(scores, dict):  # not rechecked yet
                 if not self.clock.size.time_for_recheck(study, self.clock.elapsed(), t.time_limit):
                     log.info("no time left for the recheck of trial %d (tune.time_limit)",
                              tr.number)  # fmt: skip
                     break
-                cfg = self.specified(tr.params, t.recheck_seed, r)
-                j = evaluate(self, cfg, f"recheck-trial-{tr.number}", kind="recheck")["objective"]
-                study.set_user_attr(key, j)
-            both = (k * tr.value + r * j) / (k + r) if math.isfinite(j) else -math.inf
-            rows.append({"trial": tr.number, "objective": tr.value, "recheck": j, "all": both})
-            log.info("recheck of trial %d on seeds %d..%d: J = %.4g; over its %d seeds J = %.4g",
-                     tr.number, t.recheck_seed, t.recheck_seed + r - 1, j, k + r,
-                     both)  # fmt: skip
+                cfg = self.specified(tr.params, t.recheck_seed, t.recheck_seeds)
+                out = evaluate(self, cfg, f"recheck-trial-{tr.number}", kind="recheck")
+                scores = {"objective": out["objective"], "final_score": out["final_score"]}
+                study.set_user_attr(key, scores)
+            rows.append(self._recheck_row(tr, scores))
         summary["recheck"] = rows
         if len(rows) < 2:  # nothing to choose between
             return study.best_trial
-        chosen = max(rows, key=lambda row: row["all"])
+        chosen = max(rows, key=lambda row: (row["final_all"], row["all"]))
         return next(tr for tr in finalists if tr.number == chosen["trial"])
+
+    def _recheck_row(self, trial: Any, scores: dict[str, float]) -> dict[str, Any]:
+        """A finalist's scores on its trial's K seeds, on the recheck's R and over both
+        (:meth:`choose`)."""
+        k, r = self.conf.tune.seeds, self.conf.tune.recheck_seeds
+        final = float(trial.user_attrs.get("final_score", math.nan))
+
+        def over_both(on_trial: float, on_recheck: float) -> float:
+            both = (k * on_trial + r * on_recheck) / (k + r)
+            return both if math.isfinite(both) else -math.inf
+
+        row = {"trial": trial.number, "objective": trial.value, "recheck": scores["objective"],
+               "final": final, "recheck_final": scores["final_score"]}  # fmt: skip
+        row["all"] = over_both(trial.value, scores["objective"])
+        row["final_all"] = over_both(final, scores["final_score"])
+        log.info("recheck of trial %d on seeds %d..%d: J = %.4g, final MA100 %s; over its %d "
+                 "seeds J = %.4g, final MA100 %s", trial.number, self.conf.tune.recheck_seed,
+                 self.conf.tune.recheck_seed + r - 1, row["recheck"],
+                 score_text(row["recheck_final"]), k + r, row["all"],
+                 score_text(row["final_all"]))  # fmt: skip
+        return row
 
     def _evaluate(self, cfg: DictConfig, summary: dict[str, Any], metrics: dict) -> None:
         """The best specification (and ``tune.baseline``) on the fresh seeds, and the
