@@ -594,6 +594,29 @@ def test_the_rechecked_trial_with_the_best_final_score_over_its_seeds_is_chosen(
     assert rows[1]["final_all"] == pytest.approx((3 * 499.0 + 4 * 482.0) / 7)
 
 
+def test_a_continued_study_that_chooses_another_trial_records_it(tmp_path: Path) -> None:
+    """Closed once, then continued after a better trial has joined: the second close
+    records the new choice on the same parent run (its specification as tags ``best.<key>``,
+    which a close may change) and writes its preset."""
+    over = [*_overrides(tmp_path, "reclose", 1)[:5], "controller=ddqn", "tune.study=reclose",
+            "tune.trials=1", "tune.seeds=1", "tune.episodes=4", "tune.eval_seeds=0",
+            "tune.pruner.kind=none", "tune.recheck_trials=0"]  # fmt: skip
+    first = _study(over)
+    study = optuna.load_study(study_name="reclose", storage=f"sqlite:///{tmp_path / 'optuna.db'}")
+    (trial,) = study.trials
+    better = {**trial.params, "train_freq": 8 if trial.params["train_freq"] != 8 else 1}
+    study.add_trial(optuna.trial.create_trial(
+        value=trial.value + 1.0, params=better, distributions=trial.distributions,
+        user_attrs={"final_score": 0.0}))  # fmt: skip
+    second = _study(over)
+    assert (first["best_trial"], second["best_trial"]) == (0, 1)
+    parent = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}").get_run(second["parent_run"])
+    assert second["parent_run"] == first["parent_run"]
+    assert parent.data.tags["best_trial"] == "1"
+    assert parent.data.tags["best.train_freq"] == str(better["train_freq"])
+    assert OmegaConf.load(second["preset"]).controller.train_freq == better["train_freq"]
+
+
 @pytest.mark.parametrize("agent", ["ddqn", "hinf_f"])
 def test_every_key_that_reads_a_searched_one_follows_the_specification(
     agent: str, tmp_path: Path

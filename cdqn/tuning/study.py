@@ -280,7 +280,8 @@ class Study:
         metrics["best_value"] = best.value
         metrics["best_final_score"] = best.user_attrs.get("final_score", float("nan"))
         client.set_tag(self.parent, "best_trial", str(best.number))
-        self.tracker.log_params(self.parent, {f"best.{k}": v for k, v in best.params.items()})
+        for key, value in best.params.items():  # tags: a continued study may choose another
+            client.set_tag(self.parent, f"best.{key}", str(value))
         cfg = self.specified(best.params, t.eval_seed, max(1, t.eval_seeds))
         name = t.preset or f"tuned_{t.study}"
         searched = dataclasses.replace(t, space=self.space)  # as this environment offered it
