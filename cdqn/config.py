@@ -239,6 +239,9 @@ class ThetaBounds:
     nominal: list[float] | None = None
     """Nominal (Θ1, Θ2) of the design plant (None: the box centre, √(Θ1_lo·Θ1_hi) and the
     mid ratio; the paper's CartPole design used (220, 222))."""
+    measured_on: str | None = None
+    """Where the box was measured, when a tuning study measured it (``<env>, seed <n>``);
+    None for a box given by hand.  Reports name it as the box's source."""
 
     def check(self, key: str) -> list[str]:
         """Problems of the NTK box, one line each (empty: none)."""

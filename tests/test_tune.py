@@ -853,6 +853,9 @@ def test_both_agents_tuned_alike_compared_and_their_presets_reproduce_the_settin
         else:
             assert cfg.train.lr == pytest.approx(best["lr"])
             assert cfg.controller.synthesis.ntk_bounds == "config"
+            measured = "CartPole-v1-cap60, seed 100"  # the study measured the box it designs on
+            assert tuned.weights.theta_bounds.measured_on == measured
+            assert f"NTK box (measured on {measured}):" in summary["design_report"]
 
 
 def test_the_pruner_waits_a_quarter_of_the_episodes_by_default() -> None:

@@ -35,7 +35,8 @@ class NTKBox:
     nominal: tuple[float, float]
     """Nominal (Θ1, Θ2) of the design plant."""
     source: str = "config"
-    """``config`` (given) or ``measured`` (from a rollout of the initial network)."""
+    """``config`` (given), ``measured`` (from a rollout of the initial network) or
+    ``measured on <env>, seed <n>`` (a tuning study's, written into the configuration)."""
 
     def __post_init__(self) -> None:
         t1, rho, nom = self.theta1, self.ratio, self.nominal

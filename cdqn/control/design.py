@@ -36,7 +36,8 @@ KINDS = ("hinf", "hinf_f")
 
 
 def box_from_config(tb: ThetaBounds) -> NTKBox:
-    """The config box; ``nominal=None`` puts the nominal at (√(Θ1_lo·Θ1_hi), mid ratio)."""
+    """The config box; ``nominal=None`` puts the nominal at (√(Θ1_lo·Θ1_hi), mid ratio); its
+    source says where a tuning study measured it (``theta_bounds.measured_on``)."""
     t1 = (float(tb.theta1[0]), float(tb.theta1[1]))
     rho = (float(tb.ratio[0]), float(tb.ratio[1]))
     if tb.nominal is None:
@@ -46,7 +47,7 @@ def box_from_config(tb: ThetaBounds) -> NTKBox:
         nominal = (t_nom, t_nom * 0.5 * (rho[0] + rho[1]))
     else:
         nominal = (float(tb.nominal[0]), float(tb.nominal[1]))
-    return NTKBox(t1, rho, nominal)
+    return NTKBox(t1, rho, nominal, f"measured on {tb.measured_on}" if tb.measured_on else "config")
 
 
 @dataclass

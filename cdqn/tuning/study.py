@@ -143,6 +143,7 @@ class Study:
         ``tune.seed``) and written into theta_bounds, so that every member, the preset and a
         later ``cdqn.train`` run use the same design."""
         cfg = apply(self.base, self.space, params)
+        t = self.conf.tune
         with read_write(cfg):
             cfg.seed = seed
             cfg.train.population = population
@@ -155,6 +156,7 @@ class Study:
                 cfg.weights.theta_bounds.theta1 = theta1
                 cfg.weights.theta_bounds.ratio = ratio
                 cfg.weights.theta_bounds.nominal = None
+                cfg.weights.theta_bounds.measured_on = f"{self.conf.env.name}, seed {t.seed}"
                 syn.ntk_bounds = "config"
         return cfg
 
