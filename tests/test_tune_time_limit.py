@@ -83,6 +83,20 @@ def test_a_recheck_starts_only_when_it_and_the_evaluation_fit_the_limit() -> Non
     assert size.time_for_recheck(study, 1e9, None)  # no limit
 
 
+def test_a_recheck_is_timed_at_its_finalists_pace_not_the_slowest_trials() -> None:
+    """The recheck and the evaluation train one of the finalists: a slower trial that is not
+    one of them does not stop the rechecks."""
+    study = optuna.create_study()
+    size = EvaluationSize(10, 2, 200, 1, recheck_seeds=4)
+    finalist = _trial(0, 30.0, 600, TrialState.COMPLETE)  # τ 0.05 s
+    study.add_trial(finalist)
+    study.add_trial(_trial(1, 300.0, 600, TrialState.COMPLETE))  # τ 0.5 s, not a finalist
+    elapsed = 1000.0 - (size.recheck_seconds(0.05) + size.seconds(0.05)) - 1.0
+    assert not size.time_for_recheck(study, elapsed, 1000.0)  # at the slowest complete pace
+    assert size.time_for_recheck(study, elapsed, 1000.0, [finalist])
+    assert not size.time_for_recheck(study, elapsed + 2.0, 1000.0, [finalist])
+
+
 def test_before_a_trial_completes_the_evaluation_is_the_most_a_complete_one_can_cost() -> None:
     pruned = [_trial(0, 40.0, 100, TrialState.PRUNED), _trial(1, 10.0, 300, TrialState.PRUNED)]
     capped = EvaluationSize(seeds=10, processes=2, episodes=200, runs=1, members=3,

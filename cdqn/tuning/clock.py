@@ -54,6 +54,7 @@ import logging
 import math
 import statistics
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -196,16 +197,36 @@ class EvaluationSize:
             return 0.0
         return tau * self.per_process(self.recheck_seeds) * self.episodes + START_ALLOWANCE
 
-    def time_for_recheck(self, study: Any, elapsed: float, limit: float | None) -> bool:
-        """Whether one more recheck and then the evaluation end within ``limit``, at the pace
-        of :func:`estimate` (rechecks use time the trials left; they are never reserved)."""
+    def time_for_recheck(
+        self, study: Any, elapsed: float, limit: float | None, finalists: Sequence[Any] = ()
+    ) -> bool:
+        """Whether one more recheck and then the evaluation end within ``limit`` (rechecks use
+        time the trials left; they are never reserved).  Both train one of the ``finalists``,
+        so they are timed at the slowest finalist's own pace; without one that shows a pace,
+        at the pace of :func:`estimate`."""
         if limit is None:
             return True
-        est = estimate(study.get_trials(deepcopy=False), self)
-        if est is None:
+        full = max(1, self.members) * self.episodes
+        own = []
+        for tr in finalists:
+            found = _seconds_played(tr)
+            if found is not None and shows_pace(found[1], full):
+                own.append(found[0] / found[1])
+        if own:
+            tau = max(own)
+        elif (est := estimate(study.get_trials(deepcopy=False), self)) is not None:
+            tau = est.per_member_episode
+        else:
             return False
-        tau = est.per_member_episode
         return elapsed + self.recheck_seconds(tau) + self.seconds(tau) <= limit
+
+
+def _seconds_played(trial: Any) -> tuple[float, int] | None:
+    """A finished trial's seconds and member-episodes played (None: it trained nothing)."""
+    played = trial.user_attrs.get(MEMBER_EPISODES)
+    if not played or trial.datetime_start is None or trial.datetime_complete is None:
+        return None
+    return (trial.datetime_complete - trial.datetime_start).total_seconds(), int(played)
 
 
 def estimate(trials: list[Any], size: EvaluationSize) -> Estimate | None:

@@ -331,7 +331,9 @@ class Study:
             key = f"recheck_{tr.number}_seeds_{t.recheck_seed}_{t.recheck_seeds}"
             scores = study.user_attrs.get(key)
             if not isinstance(scores, dict):  # not rechecked yet
-                if not self.clock.size.time_for_recheck(study, self.clock.elapsed(), t.time_limit):
+                if not self.clock.size.time_for_recheck(
+                    study, self.clock.elapsed(), t.time_limit, finalists
+                ):
                     log.info("no time left for the recheck of trial %d (tune.time_limit)",
                              tr.number)  # fmt: skip
                     break
