@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import shutil
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -52,26 +51,6 @@ def working_folder(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
 def tracking_uri(tmp_path: Path) -> str:
     """A fresh embedded MLflow store for one test."""
     return f"sqlite:///{tmp_path / 'mlflow.db'}"
-
-
-@pytest.fixture(scope="session")
-def empty_store(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """An MLflow SQLite store as MLflow creates it (tables made and migrated), made once per
-    test process."""
-    from mlflow.tracking import MlflowClient
-
-    path = tmp_path_factory.mktemp("empty_store") / "mlflow.db"
-    MlflowClient(f"sqlite:///{path}").search_experiments()
-    return path
-
-
-@pytest.fixture(autouse=True)
-def migrated_store(request: pytest.FixtureRequest, empty_store: Path) -> None:
-    """``tmp_path/mlflow.db``, where a test has a ``tmp_path``, starts as :func:`empty_store`:
-    creating and migrating a store takes seconds, and most tests open one there.  Tests of a
-    fresh store's creation use other names (tests/test_stores.py, tests/test_sweeps.py)."""
-    if "tmp_path" in request.fixturenames:
-        shutil.copyfile(empty_store, request.getfixturevalue("tmp_path") / "mlflow.db")
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
