@@ -206,12 +206,7 @@ class EvaluationSize:
         at the pace of :func:`estimate`."""
         if limit is None:
             return True
-        full = max(1, self.members) * self.episodes
-        own = []
-        for tr in finalists:
-            found = _seconds_played(tr)
-            if found is not None and shows_pace(found[1], full):
-                own.append(found[0] / found[1])
+        own = complete_paces(finalists, max(1, self.members) * self.episodes)
         if own:
             tau = max(own)
         elif (est := estimate(study.get_trials(deepcopy=False), self)) is not None:
@@ -221,12 +216,24 @@ class EvaluationSize:
         return elapsed + self.recheck_seconds(tau) + self.seconds(tau) <= limit
 
 
-def _seconds_played(trial: Any) -> tuple[float, int] | None:
-    """A finished trial's seconds and member-episodes played (None: it trained nothing)."""
-    played = trial.user_attrs.get(MEMBER_EPISODES)
-    if not played or trial.datetime_start is None or trial.datetime_complete is None:
-        return None
-    return (trial.datetime_complete - trial.datetime_start).total_seconds(), int(played)
+def complete_paces(trials: Sequence[Any], full: int) -> list[float]:
+    """Seconds per member-episode of the complete ``trials`` that show their pace
+    (:func:`shows_pace` of ``full`` member-episodes)."""
+    from optuna.trial import TrialState
+
+    out = []
+    for tr in trials:
+        played = int(tr.user_attrs.get(MEMBER_EPISODES) or 0)
+        start, end = tr.datetime_start, tr.datetime_complete
+        if (
+            tr.state == TrialState.COMPLETE
+            and start
+            and end
+            and played
+            and shows_pace(played, full)
+        ):
+            out.append((end - start).total_seconds() / played)
+    return out
 
 
 def estimate(trials: list[Any], size: EvaluationSize) -> Estimate | None:
@@ -235,7 +242,7 @@ def estimate(trials: list[Any], size: EvaluationSize) -> Estimate | None:
     from optuna.trial import TrialState
 
     seconds: list[float] = []
-    paced: list[tuple[float, int, bool]] = []  # trials that played an episode
+    paced: list[tuple[float, int]] = []  # trials that played an episode
     for tr in trials:
         played = tr.user_attrs.get(MEMBER_EPISODES)
         if tr.state not in (TrialState.COMPLETE, TrialState.PRUNED) or played is None:
@@ -244,11 +251,11 @@ def estimate(trials: list[Any], size: EvaluationSize) -> Estimate | None:
             continue
         seconds.append((tr.datetime_complete - tr.datetime_start).total_seconds())
         if played:
-            paced.append((seconds[-1], int(played), tr.state == TrialState.COMPLETE))
+            paced.append((seconds[-1], int(played)))
     if not seconds:
         return None
     full = max(1, size.members) * size.episodes
-    complete = [s / e for s, e, done in paced if done and shows_pace(e, full)]
+    complete = complete_paces(trials, full)
     trial = statistics.median(seconds)
     if complete:
         tau = max(complete)
@@ -256,7 +263,7 @@ def estimate(trials: list[Any], size: EvaluationSize) -> Estimate | None:
         tau = size.trial_cap / full
         trial = max(trial, size.trial_cap)
     else:
-        tau = sum(s for s, _, _ in paced) / max(1, sum(e for _, e, _ in paced))
+        tau = sum(s for s, _ in paced) / max(1, sum(e for _, e in paced))
     return Estimate(trial, size.seconds(tau), tau)
 
 
