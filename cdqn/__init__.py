@@ -29,8 +29,13 @@ def _numba_cache_dir() -> str:
     for path in sorted(root.rglob("*.py")):
         digest.update(path.relative_to(root).as_posix().encode())
         digest.update(path.read_bytes())
-    base = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "cdqn" / "numba"
-    return str(base / digest.hexdigest()[:16])
+    return str(cache_dir() / "numba" / digest.hexdigest()[:16])
+
+
+def cache_dir() -> Path:
+    """cdqn's folder of derived files, safe to delete: ``$XDG_CACHE_HOME/cdqn``
+    (``~/.cache/cdqn``)."""
+    return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "cdqn"
 
 
 os.environ.setdefault("NUMBA_CACHE_DIR", _numba_cache_dir())

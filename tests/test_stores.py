@@ -104,3 +104,58 @@ def test_analysis_refuses_an_unusable_store(case: str, tmp_path: Path) -> None:
         timeout=120,
     )
     _one_line_exit_2(proc, f"--tracking-uri='{uri}'", expected)
+
+
+def _schema(database: Path) -> dict[str, object]:
+    """What a store holds besides its runs: the schema (each object's SQL as the set of its
+    lines: MLflow's migrations order a table's CHECK constraints differently from one store
+    to the next), the migration it is at, and its experiments without their times."""
+    with contextlib.closing(sqlite3.connect(database)) as db:
+        sql = db.execute("SELECT type, name, sql FROM sqlite_master WHERE sql IS NOT NULL")
+        return {
+            "schema": sorted(
+                (k, n, sorted(ln.strip(" ,") for ln in s.splitlines())) for k, n, s in sql
+            ),
+            "migration": db.execute("SELECT version_num FROM alembic_version").fetchall(),
+            "experiments": sorted(
+                db.execute(
+                    "SELECT experiment_id, name, artifact_location, lifecycle_stage "
+                    "FROM experiments"
+                )  # fmt: skip
+            ),
+        }
+
+
+def test_a_fresh_store_copied_from_the_migrated_one_is_what_mlflow_makes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A new SQLite store is a copy of this MLflow version's migrated empty store, kept in
+    cdqn's cache folder (made by MLflow the first time); it holds what MLflow's own
+    migration makes, its ``Default`` experiment placed as MLflow places it."""
+    import mlflow
+    from mlflow.tracking import MlflowClient
+
+    from cdqn.config import EXPERIMENT_TAGS
+    from cdqn.training.store import ensure_store
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.chdir(tmp_path)
+    template = tmp_path / "cache" / "cdqn" / "mlflow" / mlflow.__version__ / "store.db"
+    ensure_store(f"sqlite:///{tmp_path / 'first.db'}", "cdqn")  # makes the template
+    assert template.exists()
+    made = template.stat().st_mtime_ns
+    (tmp_path / "empty.db").touch()  # an empty file is no database yet, as for SQLite
+    for name in ("copied.db", "empty.db"):
+        ensure_store(f"sqlite:///{tmp_path / name}", "cdqn")
+    assert template.stat().st_mtime_ns == made  # copied, not made again
+    native = MlflowClient(f"sqlite:///{tmp_path / 'native.db'}")
+    native.create_experiment("cdqn", tags=EXPERIMENT_TAGS)
+    expected = _schema(tmp_path / "native.db")
+    assert (0, "Default", f"{tmp_path}/mlruns/0") in {e[:3] for e in expected["experiments"]}
+    for name in ("first.db", "copied.db", "empty.db"):
+        assert _schema(tmp_path / name) == expected, name
+    client = MlflowClient(f"sqlite:///{tmp_path / 'copied.db'}")
+    run = client.create_run(client.get_experiment_by_name("cdqn").experiment_id)
+    client.log_metric(run.info.run_id, "episode_return", 1.0)
+    client.set_terminated(run.info.run_id)
+    assert client.get_run(run.info.run_id).info.status == "FINISHED"

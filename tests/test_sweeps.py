@@ -20,7 +20,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from cdqn.config import validate
 from cdqn.training.run import run, run_population
-from cdqn.training.sweep import PrepareStore, config_hash, ensure_store
+from cdqn.training.store import ensure_store
+from cdqn.training.sweep import PrepareStore, config_hash
 from tests.conftest import CONF_DIR, compose_config
 from tests.helpers import episode_returns, runs_of, signal_table
 

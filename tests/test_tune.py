@@ -18,6 +18,7 @@ from omegaconf import OmegaConf
 
 from cdqn.control.target import stable_over_box
 from cdqn.training.batching import batchable
+from cdqn.training.store import place_migrated
 from cdqn.tuning.objective import area, ma100, padded
 from cdqn.tuning.pruner import EpisodeMedianPruner
 from cdqn.tuning.report import summary_text
@@ -41,6 +42,7 @@ REPO = Path(__file__).resolve().parents[1]
 def _store(uri: str, experiment: str, tmp: Path) -> None:
     """Create the experiment of the store at ``uri`` with its artifacts under ``tmp`` (a
     SQLite store's default artifact root is ./mlruns of the working folder)."""
+    place_migrated(uri)
     client = MlflowClient(uri)
     if client.get_experiment_by_name(experiment) is None:
         client.create_experiment(experiment, (tmp / "mlartifacts").as_uri())

@@ -14,6 +14,7 @@ layer module                                 what it holds
 1     :mod:`~cdqn.training.result`           what a run or a population returns and prints
 1     :mod:`~cdqn.training.batching`         which seeds train as one batch (sweeps too)
 1     :mod:`~cdqn.training.divergence`       the divergence check of every run
+1     :mod:`~cdqn.training.store`            the tracking store made ready once, under a lock
 2     :mod:`~cdqn.training.loop`             the training loop of a single run
 2     :mod:`~cdqn.training.member`           a run in training: seed, run, signals, state
 3     :mod:`~cdqn.training.population_loop`  the training loop of a population
@@ -31,7 +32,7 @@ layer module                                 what it holds
 """
 
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("signals", "interrupt", "result", "batching", "divergence"),
+    ("signals", "interrupt", "result", "batching", "divergence", "store"),
     ("loop", "member"),
     ("population_loop",),
     ("build",),

@@ -74,13 +74,8 @@ from cdqn.training.population_checkpoint import (
 )
 from cdqn.training.population_loop import Checkpoints, train_population
 from cdqn.training.result import OUTAGE, PopulationResult, RunResult
-from cdqn.training.sweep import (
-    config_hash,
-    ensure_store,
-    final_score,
-    find_finished,
-    find_resumable,
-)
+from cdqn.training.store import ensure_store
+from cdqn.training.sweep import config_hash, final_score, find_finished, find_resumable
 from cdqn.training.tracking import TrackingOutage, check_tracking
 from cdqn.vector_env import VectorEnv
 

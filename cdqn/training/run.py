@@ -27,7 +27,8 @@ from cdqn.training.build import member_config, member_seeds
 from cdqn.training.divergence import is_divergence
 from cdqn.training.result import PopulationResult, RunResult
 from cdqn.training.single import resume_run, start_run
-from cdqn.training.sweep import ensure_store, finished_elsewhere, resumable_elsewhere
+from cdqn.training.store import ensure_store
+from cdqn.training.sweep import finished_elsewhere, resumable_elsewhere
 from cdqn.training.tracking import TrackingError, check_tracking
 
 if TYPE_CHECKING:

@@ -10,47 +10,27 @@ and, if there is one, logs ``skipping …`` and trains nothing; a population ski
 members that finished and trains the others.  An interrupted sweep started again therefore
 trains only what is missing.
 
-A fresh SQLite store is created by the first process that opens it; that migration is not
-safe when several joblib workers do it at the same moment.  :class:`PrepareStore` (a Hydra
-callback registered in ``conf/config.yaml``) creates the store and the experiment in the
-launching process before any job starts, and every job opens the store through
-:func:`ensure_store`, which does it under a file lock.
+:class:`PrepareStore` (a Hydra callback registered in ``conf/config.yaml``) creates the
+tracking store and the experiment in the launching process before any job starts
+(:func:`cdqn.training.store.ensure_store`; every job opens the store through it too).
 """
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import logging
 import os
-import random
 import socket
-import time
-from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
-
-from cdqn.config import (
-    EXPERIMENT_TAGS,
-    Config,
-    ConfigError,
-    NetworkConfig,
-    TrainConfig,
-    resolve_tracking_uri,
-)
-
-try:
-    import fcntl
-
-    LOCKS = True
-except ImportError:  # Windows: no advisory locks, PrepareStore still creates the store once
-    LOCKS = False
 
 from hydra.experimental.callback import Callback
 from mlflow.entities import Run
 from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
+
+from cdqn.config import Config, NetworkConfig, TrainConfig, resolve_tracking_uri
+from cdqn.training.store import ensure_store
 
 log = logging.getLogger("cdqn")
 
@@ -172,48 +152,6 @@ def final_score(client: MlflowClient, run: Run) -> float:
     """Last logged ``return_ma100`` of ``run`` (NaN when it has none)."""
     history = client.get_metric_history(run.info.run_id, "return_ma100")
     return max(history, key=lambda m: m.step).value if history else float("nan")
-
-
-def ensure_store(uri: str, experiment: str, attempts: int = 5) -> None:
-    """Create (and migrate) the store at ``uri`` and the experiment.
-
-    For a SQLite store this happens under an exclusive lock on ``<database>.lock``: a fresh
-    store's first migration, run by several processes at once, fails and leaves the
-    database unusable (a half-finished ``_alembic_tmp_*`` table).  Other errors are retried,
-    then raised as :class:`cdqn.config.ConfigError` (exit status 2, one line).
-    """
-    for attempt in range(attempts):
-        try:
-            with _store_lock(uri):
-                client = MlflowClient(uri)
-                if client.get_experiment_by_name(experiment) is None:
-                    client.create_experiment(experiment, tags=EXPERIMENT_TAGS)
-            return
-        except Exception as err:
-            if attempt == attempts - 1:
-                raise ConfigError(
-                    f"tracking.uri={uri!r}: the store cannot be opened "
-                    f"({type(err).__name__}: {' '.join(str(err).split())[:300]})"
-                ) from None
-            delay = 0.2 * 2**attempt * (1 + random.random())
-            log.warning("tracking store %s not ready (%s); retrying in %.1f s", uri, err, delay)
-            time.sleep(delay)
-
-
-@contextlib.contextmanager
-def _store_lock(uri: str) -> Iterator[None]:
-    """Exclusive lock on ``<database>.lock`` for ``sqlite:///`` URIs (POSIX); else nothing."""
-    if not uri.startswith("sqlite:///") or not LOCKS:
-        yield
-        return
-    path = Path(uri[len("sqlite:///") :] + ".lock")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("a") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 class PrepareStore(Callback):

@@ -22,7 +22,7 @@ class Tracker:
     def __init__(self, uri: str, experiment: str) -> None:
         from mlflow.tracking import MlflowClient
 
-        from cdqn.training.sweep import ensure_store
+        from cdqn.training.store import ensure_store
         from cdqn.training.tracking import check_tracking
 
         check_tracking(uri)  # an unusable store: one line, exit status 2
