@@ -159,3 +159,23 @@ def test_a_fresh_store_copied_from_the_migrated_one_is_what_mlflow_makes(
     client.log_metric(run.info.run_id, "episode_return", 1.0)
     client.set_terminated(run.info.run_id)
     assert client.get_run(run.info.run_id).info.status == "FINISHED"
+
+
+def test_a_store_is_made_where_the_cache_folder_cannot_be(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The migrated empty store is a shortcut: with no cache folder to keep it in (here a
+    file stands where the folder would be), MLflow migrates the new store itself."""
+    from mlflow.tracking import MlflowClient
+
+    from cdqn.training.store import ensure_store
+
+    (tmp_path / "cache").write_text("")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.chdir(tmp_path)
+    ensure_store(f"sqlite:///{tmp_path / 'mlflow.db'}", "cdqn")
+    names = {
+        e.name for e in MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}").search_experiments()
+    }
+    assert names == {"Default", "cdqn"}
+    assert (tmp_path / "cache").is_file()

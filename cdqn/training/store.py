@@ -7,8 +7,8 @@ through :func:`ensure_store`, which does it under an exclusive lock on ``<databa
 (:class:`cdqn.training.sweep.PrepareStore` calls it in the launching process before a
 multirun's jobs start).
 
-MLflow creates a SQLite store by running its schema migrations one by one, about 2.5 s of
-CPU on this project's machines, the same for every new store.  cdqn keeps one migrated,
+MLflow creates a SQLite store by running its schema migrations one by one, 2.5–3.5 s of CPU
+on this project's machines, the same for every new store.  cdqn keeps one migrated,
 empty store per MLflow version in its cache folder (``~/.cache/cdqn/mlflow/<version>``; made
 by MLflow itself the first time) and copies it into place for a database file that does not
 exist yet.  The copy holds the schema alone: MLflow adds the ``Default`` experiment, with its
@@ -115,7 +115,7 @@ def place_migrated(uri: str) -> None:
 def migrated_template() -> Path | None:
     """This MLflow version's migrated empty store in cdqn's cache folder, made by MLflow the
     first time (without the ``Default`` experiment, which MLflow adds on opening a copy);
-    None when the cache folder cannot be written."""
+    None when it cannot be made there (the cache folder cannot be written, say)."""
     import mlflow
 
     folder = cache_dir() / "mlflow" / mlflow.__version__
@@ -132,7 +132,7 @@ def migrated_template() -> Path | None:
                     db.execute("DELETE FROM experiments")
                 db.execute("VACUUM")
             os.replace(made, template)  # atomic: a process reading the template sees a whole one
-    except OSError as err:
+    except Exception as err:  # a shortcut only: MLflow then migrates the store itself
         log.debug("no migrated store template in %s: %s", folder, err)
         return None
     return template
