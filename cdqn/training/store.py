@@ -29,6 +29,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+from mlflow import __version__ as mlflow_version
 from mlflow.tracking import MlflowClient
 
 from cdqn import cache_dir
@@ -44,6 +45,11 @@ except ImportError:  # Windows: no advisory locks, PrepareStore still creates th
 log = logging.getLogger("cdqn")
 
 SQLITE = "sqlite:///"
+
+
+def _database(uri: str) -> Path | None:
+    """The database file of a ``sqlite:///`` ``uri``; None for other stores."""
+    return Path(uri[len(SQLITE) :]) if uri.startswith(SQLITE) else None
 
 
 def ensure_store(uri: str, experiment: str, attempts: int = 5) -> None:
@@ -77,7 +83,7 @@ def ensure_store(uri: str, experiment: str, attempts: int = 5) -> None:
 @contextlib.contextmanager
 def _store_lock(uri: str) -> Iterator[None]:
     """Exclusive lock on ``<database>.lock`` for ``sqlite:///`` URIs (POSIX); else nothing."""
-    if not uri.startswith(SQLITE) or not LOCKS:
+    if _database(uri) is None or not LOCKS:
         yield
         return
     path = Path(uri[len(SQLITE) :] + ".lock")
@@ -95,10 +101,8 @@ def place_migrated(uri: str) -> None:
     none is there yet (an empty file counts as none, as for SQLite); nothing for other stores
     or when the cache cannot provide one.  Callers hold the store's lock (:func:`ensure_store`)
     or are its only user."""
-    if not uri.startswith(SQLITE) or "?" in uri:
-        return
-    database = Path(uri[len(SQLITE) :])
-    if database.exists() and database.stat().st_size > 0:
+    database = _database(uri)
+    if database is None or "?" in uri or (database.exists() and database.stat().st_size > 0):
         return
     template = migrated_template()
     if template is None:
@@ -116,9 +120,7 @@ def migrated_template() -> Path | None:
     """This MLflow version's migrated empty store in cdqn's cache folder, made by MLflow the
     first time (without the ``Default`` experiment, which MLflow adds on opening a copy);
     None when it cannot be made there (the cache folder cannot be written, say)."""
-    import mlflow
-
-    folder = cache_dir() / "mlflow" / mlflow.__version__
+    folder = cache_dir() / "mlflow" / mlflow_version
     template = folder / "store.db"
     if template.exists():
         return template
