@@ -43,6 +43,7 @@ from cdqn.config import (
     TARGET_FIELDS,
     TrackingConfig,
     resolve_tracking_uri,
+    sqlite_file,
 )
 
 DEFAULT_URI = TrackingConfig.uri
@@ -155,9 +156,8 @@ class RunStore:
 
         (Opening it would create an empty database there.)
         """
-        if self.uri.startswith("sqlite:///"):
-            return Path(self.uri[len("sqlite:///") :]).exists()
-        return True
+        database = sqlite_file(self.uri)
+        return database is None or database.exists()
 
     # ------------------------------------------------------------------ runs
     @cached_property

@@ -682,11 +682,21 @@ class TrackingConfig:
         )
 
 
+SQLITE = "sqlite:///"
+"""The scheme of an SQLite database URI (MLflow's store, Optuna's storage)."""
+
+
+def sqlite_file(uri: str) -> Path | None:
+    """The database file of a ``sqlite:///<path>`` URI (``sqlite:////abs/path``: an absolute
+    one, else relative to the working folder); None for any other URI."""
+    return Path(uri[len(SQLITE) :]) if uri.startswith(SQLITE) else None
+
+
 def resolve_tracking_uri(uri: str) -> str:
     """Make a relative ``sqlite:///`` store or a plain path absolute, so that every launcher
     process and the analysis scripts open the same store; other URIs are returned as given."""
-    if uri.startswith("sqlite:///") and not uri.startswith("sqlite:////"):
-        return "sqlite:///" + str(Path(uri[len("sqlite:///") :]).resolve())
+    if (path := sqlite_file(uri)) is not None:
+        return SQLITE + str(path.resolve())
     if "://" not in uri and not uri.startswith("file:"):
         return Path(uri).resolve().as_uri()
     return uri

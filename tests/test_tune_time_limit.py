@@ -64,11 +64,33 @@ def test_the_estimate_is_one_median_trial_and_the_evaluation_at_the_slowest_comp
     assert with_baseline is not None
     assert with_baseline.evaluation == pytest.approx(2 * (tau * 1000 + start))
     assert estimate(trials, EvaluationSize(0, 1, 200, 1)).evaluation == 0.0  # no evaluation
-    # rechecks are not reserved: they run in the time the trials leave
-    rechecked = EvaluationSize(10, 2, 200, 1, recheck_seeds=4)
-    assert estimate(trials, rechecked).evaluation == pytest.approx(tau * 1000 + start)
-    assert rechecked.recheck_seconds(tau) == pytest.approx(tau * 2 * 200 + start)  # 2 per core
+    assert est.rechecks == 0.0  # none asked for
+    rechecked = EvaluationSize(10, 2, 200, 1, recheck_seeds=4, recheck_trials=3)
+    one = tau * 2 * 200 + start  # 2 seeds per core
+    assert rechecked.recheck_seconds(tau) == pytest.approx(one)
+    with_rechecks = estimate(trials, rechecked)
+    assert with_rechecks is not None
+    assert with_rechecks.evaluation == pytest.approx(tau * 1000 + start)
+    assert with_rechecks.rechecks == pytest.approx(3 * one)  # reserved before the next trial
+    assert with_rechecks.total == pytest.approx(30.0 + 3 * one + tau * 1000 + start)
     assert estimate(trials[3:], size) is None  # before any trial trained: no estimate
+
+
+def test_the_rechecks_reserved_are_those_that_fit_a_trials_cap_when_two_or_more_do() -> None:
+    """Cheap trials could fill the limit and leave no time for the rechecks the choice needs;
+    slow ones would give most of it to rechecks: as many as fit in T_cap are reserved."""
+    tau = 0.05
+    one = tau * 2 * 200 + START_ALLOWANCE  # 80 s
+
+    def size(trials: int, cap: float | None, seeds: int = 10) -> EvaluationSize:
+        return EvaluationSize(seeds, 2, 200, 1, 3, cap, recheck_seeds=4, recheck_trials=trials)
+
+    assert size(3, 450.0).rechecks_seconds(tau) == pytest.approx(3 * one)  # 5 fit, 3 asked
+    assert size(3, 200.0).rechecks_seconds(tau) == pytest.approx(2 * one)  # 2 fit
+    assert size(3, 100.0).rechecks_seconds(tau) == 0.0  # 1 fits: the choice is by J
+    assert size(3, None).rechecks_seconds(tau) == pytest.approx(3 * one)  # no cap
+    assert size(1, 450.0).rechecks_seconds(tau) == 0.0  # one recheck chooses nothing
+    assert size(3, 450.0, seeds=0).rechecks_seconds(tau) == 0.0  # no evaluation, no choice
 
 
 def test_a_recheck_starts_only_when_it_and_the_evaluation_fit_the_limit() -> None:

@@ -33,7 +33,7 @@ from mlflow import __version__ as mlflow_version
 from mlflow.tracking import MlflowClient
 
 from cdqn import cache_dir
-from cdqn.config import EXPERIMENT_TAGS, ConfigError
+from cdqn.config import EXPERIMENT_TAGS, SQLITE, ConfigError, sqlite_file
 
 try:
     import fcntl
@@ -43,13 +43,6 @@ except ImportError:  # Windows: no advisory locks, PrepareStore still creates th
     LOCKS = False
 
 log = logging.getLogger("cdqn")
-
-SQLITE = "sqlite:///"
-
-
-def _database(uri: str) -> Path | None:
-    """The database file of a ``sqlite:///`` ``uri``; None for other stores."""
-    return Path(uri[len(SQLITE) :]) if uri.startswith(SQLITE) else None
 
 
 def ensure_store(uri: str, experiment: str, attempts: int = 5) -> None:
@@ -83,10 +76,11 @@ def ensure_store(uri: str, experiment: str, attempts: int = 5) -> None:
 @contextlib.contextmanager
 def _store_lock(uri: str) -> Iterator[None]:
     """Exclusive lock on ``<database>.lock`` for ``sqlite:///`` URIs (POSIX); else nothing."""
-    if _database(uri) is None or not LOCKS:
+    database = sqlite_file(uri)
+    if database is None or not LOCKS:
         yield
         return
-    path = Path(uri[len(SQLITE) :] + ".lock")
+    path = Path(f"{database}.lock")
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("a") as handle:
         fcntl.flock(handle, fcntl.LOCK_EX)
@@ -101,7 +95,7 @@ def place_migrated(uri: str) -> None:
     none is there yet (an empty file counts as none, as for SQLite); nothing for other stores
     or when the cache cannot provide one.  Callers hold the store's lock (:func:`ensure_store`)
     or are its only user."""
-    database = _database(uri)
+    database = sqlite_file(uri)
     if database is None or "?" in uri or (database.exists() and database.stat().st_size > 0):
         return
     template = migrated_template()

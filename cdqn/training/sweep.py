@@ -29,7 +29,7 @@ from mlflow.entities import Run
 from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
 
-from cdqn.config import Config, NetworkConfig, TrainConfig, resolve_tracking_uri
+from cdqn.config import Config, NetworkConfig, TrainConfig, resolve_tracking_uri, sqlite_file
 from cdqn.training.store import ensure_store
 
 log = logging.getLogger("cdqn")
@@ -166,7 +166,7 @@ class PrepareStore(Callback):
         except Exception as err:  # an unresolvable interpolation: each job will report it
             log.warning("could not prepare the tracking store: %s", err)
             return
-        if uri.startswith("sqlite:///"):
+        if sqlite_file(uri) is not None:
             ensure_store(uri, experiment)
 
 

@@ -31,7 +31,7 @@ from mlflow.exceptions import MlflowException
 from mlflow.store.artifact.artifact_repository_registry import get_artifact_repository
 from mlflow.tracking import MlflowClient
 
-from cdqn.config import EXPERIMENT_TAGS, ConfigError
+from cdqn.config import EXPERIMENT_TAGS, ConfigError, sqlite_file
 from cdqn.control.box import Box
 from cdqn.records import Artifact, Tag, folder
 from cdqn.records import Metric as M
@@ -127,8 +127,7 @@ def check_tracking(uri: str, timeout: float = 10.0) -> None:
     scheme = urlsplit(uri).scheme
     if scheme in ("http", "https"):
         _check_server(uri, timeout)
-    elif scheme == "sqlite":
-        path = Path(uri[len("sqlite:///") :])
+    elif (path := sqlite_file(uri)) is not None:
         if str(path) not in ("", ":memory:"):
             _check_folder(path.parent, uri)
             _check_database(path, uri)
@@ -143,8 +142,7 @@ def check_readable(uri: str, timeout: float = 10.0, name: str = "--tracking-uri"
     scheme = urlsplit(uri).scheme
     if scheme in ("http", "https"):
         _check_server(uri, timeout, name)
-    elif scheme == "sqlite":
-        path = Path(uri[len("sqlite:///") :])
+    elif (path := sqlite_file(uri)) is not None:
         if str(path) in ("", ":memory:"):
             return
         if not path.exists():

@@ -7,6 +7,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from cdqn.config import SQLITE, sqlite_file
+
 try:
     import fcntl
 
@@ -28,8 +30,8 @@ class StudyLock:
     held does nothing.  Without ``fcntl`` (Windows) it does nothing (one worker)."""
 
     def __init__(self, url: str) -> None:
-        if url.startswith("sqlite:///"):
-            db = Path(url[len("sqlite:///") :]).resolve()  # as _storage resolves it
+        if (database := sqlite_file(url)) is not None:
+            db = database.resolve()  # as _storage resolves it
             self.path = db.with_name(db.name + ".tune-lock")
         else:
             digest = hashlib.sha256(url.encode()).hexdigest()[:16]
@@ -69,10 +71,10 @@ def open_storage(url: str) -> Any:
     import optuna
 
     warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
-    if url.startswith("sqlite:///") and not url.startswith("sqlite:////"):
-        path = Path(url[len("sqlite:///") :]).resolve()
+    if (database := sqlite_file(url)) is not None and not database.is_absolute():
+        path = database.resolve()
         path.parent.mkdir(parents=True, exist_ok=True)
-        url = f"sqlite:///{path}"
+        url = f"{SQLITE}{path}"
     if not url.startswith(("sqlite:", "postgresql", "mysql")):
         return url
     return optuna.storages.RDBStorage(

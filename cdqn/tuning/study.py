@@ -214,7 +214,7 @@ class Study:
             self.parent = self.tracker.parent(study, self.conf, self.cfg)
             size = EvaluationSize(t.eval_seeds, eval_processes(t.eval_processes, t.eval_seeds),
                                   self.episodes, 2 if t.baseline else 1, t.seeds,
-                                  trial_cap(t), t.recheck_seeds)  # fmt: skip
+                                  trial_cap(t), t.recheck_seeds, t.recheck_trials)  # fmt: skip
             self.clock = StudyClock(study, t.time_limit, size, joined=self.tracker.joined)
             self.tracker.client.set_tag(self.parent, "episodes", str(self.episodes))
             _retry_interrupted(study)
