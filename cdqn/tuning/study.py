@@ -267,7 +267,9 @@ class Study:
         if stop is not None:
             summary["stopped"] = stop.text(sum(count.values()))
             client.set_tag(self.parent, Tag.STOPPED, summary["stopped"])
-            log.warning("study %s %s", t.study, summary["stopped"])
+            # the limit ends most studies (tune.trials is a ceiling); only one too small warns
+            log.log(logging.WARNING if stop.too_small else logging.INFO, "study %s %s",
+                    t.study, summary["stopped"])  # fmt: skip
         if count["complete"] == 0:
             self.tracker.metrics(self.parent, metrics)
             why = "no trial completed" + (
