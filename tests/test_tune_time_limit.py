@@ -191,6 +191,24 @@ def test_the_clock_stops_when_one_more_trial_and_the_evaluation_would_overrun() 
     assert recorded_stop(study) is None  # a new invocation forgets the last one's stop
 
 
+def test_the_clock_keeps_the_reserved_rechecks_but_a_limit_they_exceed_is_not_too_small(
+) -> None:  # fmt: skip
+    """Trials stop early enough for the rechecks; a limit that one trial and the evaluation fit
+    but the rechecks do not still ran trials: it is not "too small" (the summary says so)."""
+    study = optuna.create_study()
+    size = EvaluationSize(2, 1, 100, 1, trial_cap=1000.0, recheck_seeds=2, recheck_trials=2)
+    study.add_trial(_trial(0, 20.0, 200, TrialState.COMPLETE))  # τ = 0.1 s
+    one = size.recheck_seconds(0.1)  # 20 s + start
+    evaluation = 20.0 + START_ALLOWANCE
+    limit = 20.0 + evaluation + one  # fits one trial and the evaluation, not both rechecks
+    clock = StudyClock(study, limit, size, joined=False)
+    stop = clock.check()
+    assert stop is not None and not stop.too_small
+    assert stop.needed == pytest.approx(20.0 + 2 * one + evaluation)
+    roomy = StudyClock(study, limit + one + 5.0, size, joined=False)
+    assert roomy.check() is None
+
+
 def test_a_running_trial_is_overdue_when_the_evaluation_would_end_past_the_limit() -> None:
     study = optuna.create_study()
     limit = 100.0
