@@ -695,7 +695,7 @@ def sqlite_file(uri: str) -> Path | None:
 def resolve_tracking_uri(uri: str) -> str:
     """Make a relative ``sqlite:///`` store or a plain path absolute, so that every launcher
     process and the analysis scripts open the same store; other URIs are returned as given."""
-    if (path := sqlite_file(uri)) is not None:
+    if (path := sqlite_file(uri)) is not None and not path.is_absolute():
         return SQLITE + str(path.resolve())
     if "://" not in uri and not uri.startswith("file:"):
         return Path(uri).resolve().as_uri()
