@@ -64,33 +64,11 @@ def test_the_estimate_is_one_median_trial_and_the_evaluation_at_the_slowest_comp
     assert with_baseline is not None
     assert with_baseline.evaluation == pytest.approx(2 * (tau * 1000 + start))
     assert estimate(trials, EvaluationSize(0, 1, 200, 1)).evaluation == 0.0  # no evaluation
-    assert est.rechecks == 0.0  # none asked for
-    rechecked = EvaluationSize(10, 2, 200, 1, recheck_seeds=4, recheck_trials=3)
-    one = tau * 2 * 200 + start  # 2 seeds per core
-    assert rechecked.recheck_seconds(tau) == pytest.approx(one)
-    with_rechecks = estimate(trials, rechecked)
-    assert with_rechecks is not None
-    assert with_rechecks.evaluation == pytest.approx(tau * 1000 + start)
-    assert with_rechecks.rechecks == pytest.approx(3 * one)  # reserved before the next trial
-    assert with_rechecks.total == pytest.approx(30.0 + 3 * one + tau * 1000 + start)
+    # rechecks are not reserved: they run in the time the trials leave
+    rechecked = EvaluationSize(10, 2, 200, 1, recheck_seeds=4)
+    assert estimate(trials, rechecked).evaluation == pytest.approx(tau * 1000 + start)
+    assert rechecked.recheck_seconds(tau) == pytest.approx(tau * 2 * 200 + start)  # 2 per core
     assert estimate(trials[3:], size) is None  # before any trial trained: no estimate
-
-
-def test_the_rechecks_reserved_are_those_that_fit_a_trials_cap_when_two_or_more_do() -> None:
-    """Cheap trials could fill the limit and leave no time for the rechecks the choice needs;
-    slow ones would give most of it to rechecks: as many as fit in T_cap are reserved."""
-    tau = 0.05
-    one = tau * 2 * 200 + START_ALLOWANCE  # 80 s
-
-    def size(trials: int, cap: float | None, seeds: int = 10) -> EvaluationSize:
-        return EvaluationSize(seeds, 2, 200, 1, 3, cap, recheck_seeds=4, recheck_trials=trials)
-
-    assert size(3, 450.0).rechecks_seconds(tau) == pytest.approx(3 * one)  # 5 fit, 3 asked
-    assert size(3, 200.0).rechecks_seconds(tau) == pytest.approx(2 * one)  # 2 fit
-    assert size(3, 100.0).rechecks_seconds(tau) == 0.0  # 1 fits: the choice is by J
-    assert size(3, None).rechecks_seconds(tau) == pytest.approx(3 * one)  # no cap
-    assert size(1, 450.0).rechecks_seconds(tau) == 0.0  # one recheck chooses nothing
-    assert size(3, 450.0, seeds=0).rechecks_seconds(tau) == 0.0  # no evaluation, no choice
 
 
 def test_a_recheck_starts_only_when_it_and_the_evaluation_fit_the_limit() -> None:
@@ -189,24 +167,6 @@ def test_the_clock_stops_when_one_more_trial_and_the_evaluation_would_overrun() 
     assert stop.text(4).startswith(f"stopped at its time limit ({limit:g} s) after 4 trials")
     assert StudyClock(study, None, EvaluationSize(2, 1, 100, 1), joined=False).check() is None
     assert recorded_stop(study) is None  # a new invocation forgets the last one's stop
-
-
-def test_the_clock_keeps_the_reserved_rechecks_but_a_limit_they_exceed_is_not_too_small(
-) -> None:  # fmt: skip
-    """Trials stop early enough for the rechecks; a limit that one trial and the evaluation fit
-    but the rechecks do not still ran trials: it is not "too small" (the summary says so)."""
-    study = optuna.create_study()
-    size = EvaluationSize(2, 1, 100, 1, trial_cap=1000.0, recheck_seeds=2, recheck_trials=2)
-    study.add_trial(_trial(0, 20.0, 200, TrialState.COMPLETE))  # τ = 0.1 s
-    one = size.recheck_seconds(0.1)  # 20 s + start
-    evaluation = 20.0 + START_ALLOWANCE
-    limit = 20.0 + evaluation + one  # fits one trial and the evaluation, not both rechecks
-    clock = StudyClock(study, limit, size, joined=False)
-    stop = clock.check()
-    assert stop is not None and not stop.too_small
-    assert stop.needed == pytest.approx(20.0 + 2 * one + evaluation)
-    roomy = StudyClock(study, limit + one + 5.0, size, joined=False)
-    assert roomy.check() is None
 
 
 def test_a_running_trial_is_overdue_when_the_evaluation_would_end_past_the_limit() -> None:

@@ -1,10 +1,10 @@
 """The study's wall-time budget (``tune.time_limit``): whether a worker may start another
 trial, and when a running one stops.
 
-The whole study — its trials, the rechecks of the best ones, then the evaluation on fresh
-seeds (and ``tune.baseline``) — is to end within ``tune.time_limit`` seconds of its start.
-Three rules keep it there; a recheck, besides, starts only when it and the evaluation still
-end within the limit (:meth:`EvaluationSize.time_for_recheck`).
+The whole study — its trials, then the evaluation on fresh seeds (and ``tune.baseline``) —
+is to end within ``tune.time_limit`` seconds of its start.  Three rules keep it there.  The
+rechecks of the best trials run in the time the trials leave: each starts only when it and
+the evaluation still end within the limit (:meth:`EvaluationSize.time_for_recheck`).
 
 * **A trial trains for at most T_cap = tune.trial_share · tune.time_limit** (a quarter by
   default); one still training then stops at its members' next episode ends and is pruned
@@ -15,7 +15,7 @@ end within the limit (:meth:`EvaluationSize.time_for_recheck`).
   whatever the specification costs.
 * **Before each trial** a worker estimates the time the study still needs,
 
-      T_rest = T_trial + T_recheck + T_eval,
+      T_rest = T_trial + T_eval,
 
   and starts no trial when ``elapsed + T_rest > tune.time_limit``:
 
@@ -25,13 +25,6 @@ end within the limit (:meth:`EvaluationSize.time_for_recheck`).
     the cap); none before the first such trial, so each worker's first trial starts
     whatever the limit (a limit below T_rest alone is *too small* for one trial, and the
     study says so);
-  - T_recheck, the rechecks the choice of the best trial needs: each takes
-    τ · ⌈recheck_seeds / processes⌉ · episodes + T_start, and as many of the
-    ``tune.recheck_trials`` as fit in T_cap are reserved, when two or more do (none
-    otherwise: the choice is then the best by J, as with ``tune.recheck_trials`` below two).
-    So a study whose cheap trials could fill the limit still chooses among its best trials
-    on more seeds than J ranked them on, and one whose trials are slow keeps its time for
-    trials;
   - T_eval, the evaluation: τ · ⌈eval_seeds / processes⌉ · episodes + T_start, twice that
     with a ``tune.baseline``, which trains the same seeds again; τ is the wall time per
     member-episode (each trial records the episodes its members played,
@@ -138,12 +131,10 @@ class Estimate:
     """The evaluation (and baseline) on fresh seeds."""
     per_member_episode: float
     """τ of the evaluation: wall time per member-episode (module docstring)."""
-    rechecks: float = 0.0
-    """The rechecks of the best trials (T_recheck)."""
 
     @property
     def total(self) -> float:
-        return self.trial + self.rechecks + self.evaluation
+        return self.trial + self.evaluation
 
 
 @dataclass(frozen=True)
@@ -166,8 +157,8 @@ class Stop:
                     f"the evaluation (about {self.needed:.0f} s): ran {trials} trial(s) "
                     "anyway")  # fmt: skip
         return (f"stopped at its time limit ({self.limit:g} s) after {trials} trials: "
-                f"{self.elapsed:.0f} s elapsed, one more trial, the rechecks and the "
-                f"evaluation need about {self.needed:.0f} s")  # fmt: skip
+                f"{self.elapsed:.0f} s elapsed, one more trial and the evaluation need about "
+                f"{self.needed:.0f} s")  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -188,8 +179,6 @@ class EvaluationSize:
     """T_cap, the most seconds a trial trains (None: no cap)."""
     recheck_seeds: int = 0
     """Seeds of each recheck, split over ``processes`` as the evaluation's are."""
-    recheck_trials: int = 0
-    """Trials rechecked before the choice (fewer than two: none)."""
 
     def per_process(self, seeds: int | None = None) -> int:
         """Members each process trains for ``seeds`` seeds (default: the evaluation's)."""
@@ -208,23 +197,13 @@ class EvaluationSize:
             return 0.0
         return tau * self.per_process(self.recheck_seeds) * self.episodes + START_ALLOWANCE
 
-    def rechecks_seconds(self, tau: float) -> float:
-        """T_recheck at τ: as many of the ``recheck_trials`` rechecks as fit in T_cap, when two
-        or more do, else 0 (module docstring); 0 without an evaluation to choose for."""
-        one = self.recheck_seconds(tau)
-        if self.recheck_trials < 2 or not self.seeds or one <= 0:
-            return 0.0
-        fit = self.recheck_trials if self.trial_cap is None else int(self.trial_cap // one)
-        n = min(self.recheck_trials, fit)
-        return n * one if n >= 2 else 0.0
-
     def time_for_recheck(
         self, study: Any, elapsed: float, limit: float | None, finalists: Sequence[Any] = ()
     ) -> bool:
-        """Whether one more recheck and then the evaluation end within ``limit`` (the time
-        reserved for them may have run short: a trial may end late).  Both train one of the
-        ``finalists``, so they are timed at the slowest finalist's own pace; without one that
-        shows a pace, at the pace of :func:`estimate`."""
+        """Whether one more recheck and then the evaluation end within ``limit`` (rechecks use
+        time the trials left; they are never reserved).  Both train one of the ``finalists``,
+        so they are timed at the slowest finalist's own pace; without one that shows a pace,
+        at the pace of :func:`estimate`."""
         if limit is None:
             return True
         own = complete_paces(finalists, max(1, self.members) * self.episodes)
@@ -285,7 +264,7 @@ def estimate(trials: list[Any], size: EvaluationSize) -> Estimate | None:
         trial = max(trial, size.trial_cap)
     else:
         tau = sum(s for s, _ in paced) / max(1, sum(e for _, e in paced))
-    return Estimate(trial, size.seconds(tau), tau, size.rechecks_seconds(tau))
+    return Estimate(trial, size.seconds(tau), tau)
 
 
 class StudyClock:
@@ -347,13 +326,12 @@ class StudyClock:
         elapsed = self.elapsed()
         if est is None or elapsed + est.total <= self.limit:
             return None
-        too_small = est.trial + est.evaluation > self.limit
-        stop = Stop(self.limit, elapsed, est.total, too_small=too_small)
+        stop = Stop(self.limit, elapsed, est.total, too_small=est.total > self.limit)
         self.study.set_user_attr(STOP, stop.__dict__)
-        log.info("time limit %g s: %.0f s elapsed, one more trial (%.0f s), the rechecks "
-                 "(%.0f s) and the evaluation (%.0f s, %.3g s per member-episode) would end "
-                 "past it; no further trial", self.limit, elapsed, est.trial, est.rechecks,
-                 est.evaluation, est.per_member_episode)  # fmt: skip
+        log.info("time limit %g s: %.0f s elapsed, one more trial (%.0f s) and the "
+                 "evaluation (%.0f s, %.3g s per member-episode) would end past it; no further "
+                 "trial", self.limit, elapsed, est.trial, est.evaluation,
+                 est.per_member_episode)  # fmt: skip
         return stop
 
 

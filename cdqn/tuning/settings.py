@@ -65,12 +65,9 @@ class TuneSettings:
     """Optuna study name (also the MLflow parent run's name)."""
     storage: str = "sqlite:///optuna.db"
     """Optuna storage; an SQLite file survives a restart and the study continues."""
-    trials: int = 200
-    """The most trials of the study that train (a resumed study runs the missing ones); a
-    specification refused before training (infeasible) does not count, up to ``trials`` of
-    them.  With ``time_limit``, the limit ends most studies first: the search budget of a
-    study is its wall time, the same for every agent, and a cheaper trial leaves room for
-    more of them."""
+    trials: int = 20
+    """Trials of the study that train (a resumed study runs the missing ones); a specification
+    refused before training (infeasible) does not count, up to ``trials`` of them."""
     seeds: int = 3
     """Population size K of a trial."""
     seed: int = 100

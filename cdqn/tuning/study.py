@@ -214,7 +214,7 @@ class Study:
             self.parent = self.tracker.parent(study, self.conf, self.cfg)
             size = EvaluationSize(t.eval_seeds, eval_processes(t.eval_processes, t.eval_seeds),
                                   self.episodes, 2 if t.baseline else 1, t.seeds,
-                                  trial_cap(t), t.recheck_seeds, t.recheck_trials)  # fmt: skip
+                                  trial_cap(t), t.recheck_seeds)  # fmt: skip
             self.clock = StudyClock(study, t.time_limit, size, joined=self.tracker.joined)
             self.tracker.client.set_tag(self.parent, "episodes", str(self.episodes))
             _retry_interrupted(study)
@@ -267,9 +267,7 @@ class Study:
         if stop is not None:
             summary["stopped"] = stop.text(sum(count.values()))
             client.set_tag(self.parent, Tag.STOPPED, summary["stopped"])
-            # the limit ends most studies (tune.trials is a ceiling); only one too small warns
-            log.log(logging.WARNING if stop.too_small else logging.INFO, "study %s %s",
-                    t.study, summary["stopped"])  # fmt: skip
+            log.warning("study %s %s", t.study, summary["stopped"])
         if count["complete"] == 0:
             self.tracker.metrics(self.parent, metrics)
             why = "no trial completed" + (
