@@ -310,8 +310,8 @@ class Study:
         ``tune.recheck_seeds`` seeds of their own, and the one with the best final score over
         all its seeds is chosen (J over them breaks a tie),
 
-        .. math::  F_{\rm all} = (K\,F_{\rm trial} + R\,F_{\rm recheck}) / (K + R),
-                   \quad J_{\rm all} = (K\,J_{\rm trial} + R\,J_{\rm recheck}) / (K + R)
+        .. math::  F_{\\rm all} = (K\\,F_{\\rm trial} + R\\,F_{\\rm recheck}) / (K + R),
+                   \\quad J_{\\rm all} = (K\\,J_{\\rm trial} + R\\,J_{\\rm recheck}) / (K + R)
 
         (K trial seeds, R recheck seeds; F is the mean over seeds of the MA100 of the last
         episode, J the mean area, :func:`cdqn.tuning.objective.area`; a recheck without a
