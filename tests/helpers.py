@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import atexit
+import json
 import logging
 import os
 import random
+import select
 import signal
 import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import urllib.request
 from collections.abc import Callable, Iterator
@@ -22,6 +26,7 @@ from mlflow.tracking import MlflowClient
 
 from cdqn.training.loop import EpisodeStats
 from cdqn.training.tracking import Recorder
+from tests.cli_server import SERVED
 
 ROOT = Path(__file__).resolve().parents[1]
 """The checkout these tests belong to."""
@@ -31,10 +36,14 @@ def run_cli(
     module: str, args: list[str], cwd: Path, timeout: float = 300.0
 ) -> subprocess.CompletedProcess[str]:
     """``python -m <module> <args>`` in ``cwd``, with this checkout's ``cdqn`` and ``tests``
-    importable (:data:`ROOT` on ``PYTHONPATH``); output captured as text."""
-    path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": path}
-    env.pop("HYDRA_FULL_ERROR", None)
+    importable (:data:`ROOT` on ``PYTHONPATH``); output captured as text.
+
+    cdqn's command lines start as children of a process that has their imports done
+    (:mod:`tests.cli_server`); each is its own process, with its own working folder,
+    environment, arguments and exit code."""
+    env = _cli_env()
+    if module in SERVED:
+        return _server().run({"module": module}, args, cwd, env, timeout)
     return subprocess.run(
         [sys.executable, "-m", module, *args],
         cwd=cwd,
@@ -43,6 +52,110 @@ def run_cli(
         text=True,
         timeout=timeout,
     )
+
+
+def run_script(
+    script: Path, args: list[str], cwd: Path, timeout: float = 300.0
+) -> subprocess.CompletedProcess[str]:
+    """``python <script> <args>`` in ``cwd`` (an ``analysis/`` script, as a user runs it:
+    nothing added to ``PYTHONPATH``), started as :func:`run_cli` starts cdqn's commands."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    return _server().run({"script": str(script)}, args, cwd, env, timeout)
+
+
+def _cli_env() -> dict[str, str]:
+    """This process's environment with :data:`ROOT` first on ``PYTHONPATH``, unbuffered."""
+    path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": path}
+    env.pop("HYDRA_FULL_ERROR", None)
+    return env
+
+
+class _CliServer:
+    """The running :mod:`tests.cli_server` of this test process, and its commands."""
+
+    def __init__(self, env: dict[str, str]) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, str(ROOT / "tests" / "cli_server.py")],
+            cwd=ROOT,
+            env=env,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+        )
+        self.lock = threading.Lock()
+        self.pending = b""
+        self._answer("ready", 300.0)
+        atexit.register(self.close)
+
+    def run(
+        self,
+        command: dict[str, str],
+        args: list[str],
+        cwd: Path,
+        env: dict[str, str],
+        timeout: float,
+    ) -> subprocess.CompletedProcess[str]:
+        """``command`` (``{"module": …}`` or ``{"script": …}``) with ``args`` in a child."""
+        head = ["-m", command["module"]] if "module" in command else [command["script"]]
+        cmd = [sys.executable, *head, *args]
+        with self.lock, tempfile.TemporaryDirectory() as tmp:
+            out, err = Path(tmp) / "stdout", Path(tmp) / "stderr"
+            request = {**command, "args": args, "cwd": str(cwd), "env": env,
+                       "stdout": str(out), "stderr": str(err)}  # fmt: skip
+            assert self.proc.stdin is not None
+            self.proc.stdin.write(json.dumps(request).encode() + b"\n")
+            self.proc.stdin.flush()
+            pid = self._answer("pid", 60.0)
+            try:
+                code = self._answer("returncode", timeout)
+            except subprocess.TimeoutExpired:
+                os.kill(pid, signal.SIGKILL)
+                self._answer("returncode", 60.0)
+                raise subprocess.TimeoutExpired(
+                    cmd, timeout, output=_text(out), stderr=_text(err)
+                ) from None
+            return subprocess.CompletedProcess(cmd, code, _text(out), _text(err))
+
+    def _answer(self, key: str, timeout: float) -> int:
+        """The next answer of the server, which must hold ``key``."""
+        assert self.proc.stdout is not None
+        fd = self.proc.stdout.fileno()
+        deadline = time.monotonic() + timeout
+        while b"\n" not in self.pending:
+            left = deadline - time.monotonic()
+            if left <= 0 or not select.select([fd], [], [], left)[0]:
+                raise subprocess.TimeoutExpired(str(self.proc.args), timeout)
+            chunk = os.read(fd, 4096)
+            if not chunk:
+                raise RuntimeError(f"tests/cli_server.py ended (exit {self.proc.wait()})")
+            self.pending += chunk
+        line, _, self.pending = self.pending.partition(b"\n")
+        return int(json.loads(line)[key])
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            assert self.proc.stdin is not None
+            self.proc.stdin.close()
+            try:
+                self.proc.wait(30)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+
+
+_SERVER: list[_CliServer] = []
+
+
+def _server() -> _CliServer:
+    """This test process's server (started with this checkout on ``PYTHONPATH``, as
+    :func:`run_cli`'s commands are)."""
+    if not _SERVER or _SERVER[0].proc.poll() is not None:
+        _SERVER[:] = [_CliServer(_cli_env())]
+    return _SERVER[0]
+
+
+def _text(path: Path) -> str:
+    return path.read_text(encoding="utf-8", errors="replace") if path.exists() else ""
 
 
 def start_cli(

@@ -8,15 +8,15 @@ Every ``python -m cdqn.<tool>`` and ``python analysis/<script>.py`` line of the 
 from __future__ import annotations
 
 import importlib.util
-import os
 import re
 import shlex
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 from mlflow.tracking import MlflowClient
+
+from tests.helpers import run_cli, run_script
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -90,13 +90,12 @@ def with_budget(args: list[str], run_id: str) -> list[str]:
 
 
 def _run(args: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
+    """``python -m <tool> <args>`` (``python <script> <args>``) in ``cwd``, with this
+    checkout's ``cdqn`` importable (:func:`tests.helpers.run_cli`)."""
     tool, rest = args[0], args[1:]
-    argv = [str(ROOT / tool)] if tool.startswith("analysis/") else ["-m", tool]
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"}
-    return subprocess.run(
-        [sys.executable, *argv, *rest], cwd=cwd, env=env, capture_output=True, text=True,
-        timeout=600,
-    )  # fmt: skip
+    if tool.startswith("analysis/"):
+        return run_script(ROOT / tool, rest, cwd, timeout=600)
+    return run_cli(tool, rest, cwd, timeout=600)
 
 
 def test_readme_commands_are_found() -> None:

@@ -10,14 +10,13 @@ import contextlib
 import os
 import sqlite3
 import subprocess
-import sys
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
 from tests.conftest import TINY
-from tests.helpers import free_port, run_cli
+from tests.helpers import free_port, run_cli, run_script
 
 pytestmark = pytest.mark.slow  # one CLI start (torch, MLflow imports) per case
 
@@ -96,13 +95,7 @@ def test_analysis_refuses_an_unusable_store(case: str, tmp_path: Path) -> None:
         uri, expected = f"sqlite:///{tmp_path}/none.db", f"no such file {tmp_path}/none.db"
     else:
         uri, expected = CASES[case](tmp_path)
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "analysis/make_table.py"), "--tracking-uri", uri],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    proc = run_script(ROOT / "analysis/make_table.py", ["--tracking-uri", uri], tmp_path, 120)
     _one_line_exit_2(proc, f"--tracking-uri='{uri}'", expected)
 
 

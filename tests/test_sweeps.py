@@ -23,7 +23,7 @@ from cdqn.training.run import run, run_population
 from cdqn.training.store import ensure_store
 from cdqn.training.sweep import PrepareStore, config_hash
 from tests.conftest import CONF_DIR, compose_config
-from tests.helpers import episode_returns, runs_of, signal_table
+from tests.helpers import episode_returns, run_cli, runs_of, signal_table
 
 ROOT = CONF_DIR.parent
 SWEEPS = ROOT / "sweeps"
@@ -77,11 +77,9 @@ def test_every_job_of_the_paper_sweep_is_a_valid_configuration() -> None:
 
 def test_the_command_line_composes_the_paper_sweep(tmp_path: Path) -> None:
     """``python -m cdqn.train --config-dir sweeps --config-name paper --cfg job``."""
-    out = subprocess.run(
-        [sys.executable, "-m", "cdqn.train", "--config-dir", str(SWEEPS), "--config-name",
-         "paper", "hydra/launcher=slurm", "--cfg", "job"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=300, check=True,
-    )  # fmt: skip
+    out = run_cli("cdqn.train", ["--config-dir", str(SWEEPS), "--config-name", "paper",
+                                 "hydra/launcher=slurm", "--cfg", "job"], tmp_path)  # fmt: skip
+    assert out.returncode == 0, out.stderr[-2000:]
     job = OmegaConf.create(out.stdout)
     assert job.train.population == 10 and job.tracking.skip_finished is True
 
@@ -188,15 +186,15 @@ def test_the_store_is_prepared_before_a_multirun_starts(tmp_path: Path) -> None:
 def test_an_interrupted_local_sweep_started_again_skips_what_finished(tmp_path: Path) -> None:
     """The smoke sweep through the joblib launcher, twice: the second time every run is
     skipped (a real multirun with a real store)."""
-    cmd = [sys.executable, "-m", "cdqn.train", "-m", "--config-dir", str(SWEEPS),
-           "--config-name", "smoke", "env=cartpole", "controller=hinf_f,ddqn",
-           "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={tmp_path / 'multirun'}"]  # fmt: skip
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, timeout=600, check=True)
+    args = ["-m", "--config-dir", str(SWEEPS), "--config-name", "smoke", "env=cartpole",
+            "controller=hinf_f,ddqn", "hydra.launcher.n_jobs=2",
+            f"hydra.sweep.dir={tmp_path / 'multirun'}"]  # fmt: skip
+    out = run_cli("cdqn.train", args, tmp_path, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     first = {r.info.run_id for r in runs_of(uri)}
     assert len(first) == 4
-    out = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    out = run_cli("cdqn.train", args, tmp_path, timeout=600)
     assert out.returncode == 0, out.stderr[-2000:]
     assert (out.stdout + out.stderr).count("skipping") == 4
     assert {r.info.run_id for r in runs_of(uri)} == first
@@ -246,14 +244,7 @@ def test_a_killed_sweep_started_again_continues_itsruns_of(tmp_path: Path) -> No
 
     for folder in folders.values():
         folder.mkdir()
-    ref = subprocess.run(
-        command(folders["reference"]),
-        cwd=folders["reference"],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    ref = run_cli("cdqn.train", command(folders["reference"])[3:], folders["reference"], 600)
     assert ref.returncode == 0, ref.stderr[-3000:]
     assert "cdqn sweeper: 4 jobs as 2" in ref.stdout + ref.stderr
     uri = f"sqlite:///{folders['killed'] / 'mlflow.db'}"
@@ -287,14 +278,7 @@ def test_a_killed_sweep_started_again_continues_itsruns_of(tmp_path: Path) -> No
     left = sorted(k for k, r in before.items() if r.info.status != "FINISHED")
     assert left, "the sweep ended before it could be killed"
 
-    again = subprocess.run(
-        command(folders["killed"]),
-        cwd=folders["killed"],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    again = run_cli("cdqn.train", command(folders["killed"])[3:], folders["killed"], 600)
     assert again.returncode == 0, again.stderr[-3000:]
     after = _by_member(uri)
     reference = _by_member(f"sqlite:///{folders['reference'] / 'mlflow.db'}")

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -13,6 +11,7 @@ from hydra import compose, initialize_config_dir
 from cdqn.control.errors import DesignError
 from cdqn.synthesize import synthesize
 from tests.conftest import CONF_DIR
+from tests.helpers import run_cli
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -24,20 +23,15 @@ def _cfg(overrides: list[str]):
 
 def test_cli_writes_design_and_plots(tmp_path: Path) -> None:
     out = tmp_path / "design"
-    proc = subprocess.run(
+    proc = run_cli(
+        "cdqn.synthesize",
         [
-            sys.executable,
-            "-m",
-            "cdqn.synthesize",
             "env=mountaincar",
             "controller=hinf",
             f"out={out}",
             f"controller.synthesis.cache_dir={tmp_path / 'cache'}",
         ],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=300,
+        REPO,
     )
     assert proc.returncode == 0, proc.stderr
     assert "certificate: PASSED" in proc.stdout and "achieved γ" in proc.stdout
@@ -58,21 +52,16 @@ def test_cli_writes_design_and_plots(tmp_path: Path) -> None:
 
 
 def test_cli_error_exits_with_reason(tmp_path: Path) -> None:
-    proc = subprocess.run(
+    proc = run_cli(
+        "cdqn.synthesize",
         [
-            sys.executable,
-            "-m",
-            "cdqn.synthesize",
             "env=cartpole",
             "controller=hinf_f",
             f"out={tmp_path}",
             "weights.theta_bounds.theta1=[200.0,50000.0]",
             "controller.synthesis.plant=paper",
         ],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=300,
+        REPO,
     )
     assert proc.returncode == 2
     assert "infeasible NTK box" in proc.stderr

@@ -4,9 +4,7 @@ same config and seed give the same returns."""
 from __future__ import annotations
 
 import json
-import os
 import subprocess
-import sys
 from pathlib import Path
 
 import mlflow
@@ -19,6 +17,7 @@ from cdqn.network import load_network
 from cdqn.training.run import run
 from cdqn.training.signals import COLUMNS, FFT_COLUMNS
 from tests.conftest import TINY, compose_config
+from tests.helpers import run_cli
 
 METRICS = {
     "episode_return",
@@ -126,15 +125,7 @@ def test_same_seed_same_returns(tracking_uri: str) -> None:
 
 
 def _cli(args: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
-    env = {**os.environ, "HYDRA_FULL_ERROR": "0"}
-    return subprocess.run(
-        [sys.executable, "-m", "cdqn.train", *args],
-        cwd=cwd,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    return run_cli("cdqn.train", args, cwd, timeout=600)
 
 
 def test_multirun_makes_one_run_per_job_in_one_experiment(tmp_path: Path) -> None:

@@ -317,15 +317,10 @@ def test_study_end_to_end_resume_and_preset(tmp_path: Path) -> None:
 
 
 def _train_with_preset(tmp: Path):
-    import subprocess
-    import sys
-
     _store(f"sqlite:///{tmp / 'train.db'}", "cdqn", tmp)
-    return subprocess.run(
+    return run_cli(
+        "cdqn.train",
         [
-            sys.executable,
-            "-m",
-            "cdqn.train",
             "weights=tuned_tiny",
             f"hydra.searchpath=[file://{tmp / 'presets'}]",
             "controller=hinf_f",
@@ -337,10 +332,7 @@ def _train_with_preset(tmp: Path):
             f"tracking.uri=sqlite:///{tmp / 'train.db'}",
             f"hydra.run.dir={tmp / 'train-out'}",
         ],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=300,
+        REPO,
     )
 
 
@@ -467,9 +459,6 @@ def test_two_workers_through_the_joblib_launcher_share_one_study(tmp_path: Path)
     """A real multirun (hydra-joblib-launcher, two processes, ``tune.worker=0,1``) of a
     5-trial study: exactly 5 trials in all, both workers ran trials at the same time, one
     MLflow parent run that every trial and the one evaluation are children of."""
-    import os
-    import subprocess
-    import sys
 
     args = [
         "-m",
@@ -484,9 +473,7 @@ def test_two_workers_through_the_joblib_launcher_share_one_study(tmp_path: Path)
             ["tune.episodes=30", "tune.pruner.interval=10", "tune.pruner.warmup_episodes=10"],
         ),  # fmt: skip
     ]
-    env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.run([sys.executable, "-m", "cdqn.tune", *args], cwd=REPO, env=env,
-                          capture_output=True, text=True, timeout=1200)  # fmt: skip
+    proc = run_cli("cdqn.tune", args, REPO, timeout=1200)
     assert proc.returncode == 0, proc.stderr[-3000:]
 
     study = optuna.load_study(study_name="par", storage=f"sqlite:///{tmp_path / 'optuna.db'}")

@@ -7,7 +7,6 @@ scripts on such a store.  Real ``python -m cdqn.train`` subprocesses, a real SQL
 from __future__ import annotations
 
 import re
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +17,7 @@ from analysis.figures import FigureContext, learning
 from analysis.runs import RunStore, comparable_runs
 from cdqn.envs import adopt
 from tests.conftest import compose_config
-from tests.helpers import run_cli
+from tests.helpers import run_cli, run_script
 
 pytestmark = pytest.mark.slow  # two training commands of a few episodes each
 
@@ -197,12 +196,4 @@ def test_adopt_keeps_explicit_values_and_matching_weights() -> None:
 
 def run_cli_script(script: str, args: list[str], cwd: Path):
     """``python analysis/<script> <args>`` as a user runs it."""
-    import subprocess
-
-    return subprocess.run(
-        [sys.executable, str(ROOT / "analysis" / script), *args],
-        cwd=cwd,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    return run_script(ROOT / "analysis" / script, args, cwd)
