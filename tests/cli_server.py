@@ -19,6 +19,7 @@ signal that ended it, as ``subprocess``).
 from __future__ import annotations
 
 import gc
+import importlib
 import io
 import json
 import os
@@ -31,22 +32,24 @@ SERVED = ("cdqn.train", "cdqn.tune", "cdqn.evaluate", "cdqn.synthesize")
 ``cdqn.profile`` set thread counts before torch is imported) start as fresh interpreters."""
 
 
-def _preimport() -> None:
-    import mlflow.store.tracking.sqlalchemy_store  # noqa: F401
-    import optuna  # noqa: F401
-
-    import analysis.make_figures
-    import analysis.make_table  # noqa: F401
-    import cdqn.cli
-    import cdqn.training.run
-    import cdqn.tuning.study  # noqa: F401
+PREIMPORTED = (
+    "cdqn.cli",
+    "cdqn.training.run",
+    "cdqn.tuning.study",
+    "analysis.make_table",
+    "analysis.make_figures",
+    "mlflow.store.tracking.sqlalchemy_store",
+    "optuna",
+)
+"""What this process imports before it serves (the commands' heavy imports)."""
 
 
 def serve() -> tuple[dict[str, Any], dict[str, str]] | None:
     """Answer requests until stdin closes; in a child, return its request and the variables
     the imports set."""
     before = dict(os.environ)
-    _preimport()
+    for name in PREIMPORTED:
+        importlib.import_module(name)
     set_by_imports = {k: v for k, v in os.environ.items() if before.get(k) != v}
     gc.freeze()  # the imported objects stay out of the children's collections
     print(json.dumps({"ready": os.getpid()}), flush=True)

@@ -232,24 +232,18 @@ def test_a_killed_sweep_started_again_continues_itsruns_of(tmp_path: Path) -> No
     env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"}
     folders = {name: tmp_path / name for name in ("reference", "killed")}
 
-    def command(folder: Path) -> list[str]:
-        return [
-            sys.executable,
-            "-m",
-            "cdqn.train",
-            "-m",
-            *RESTART,
-            f"hydra.sweep.dir={folder / 'multirun'}",
-        ]
+    def sweep(folder: Path) -> list[str]:
+        """The arguments of ``python -m cdqn.train`` that sweep into ``folder``."""
+        return ["-m", *RESTART, f"hydra.sweep.dir={folder / 'multirun'}"]
 
     for folder in folders.values():
         folder.mkdir()
-    ref = run_cli("cdqn.train", command(folders["reference"])[3:], folders["reference"], 600)
+    ref = run_cli("cdqn.train", sweep(folders["reference"]), folders["reference"], 600)
     assert ref.returncode == 0, ref.stderr[-3000:]
     assert "cdqn sweeper: 4 jobs as 2" in ref.stdout + ref.stderr
     uri = f"sqlite:///{folders['killed'] / 'mlflow.db'}"
     proc = subprocess.Popen(
-        command(folders["killed"]),
+        [sys.executable, "-m", "cdqn.train", *sweep(folders["killed"])],
         cwd=folders["killed"],
         env=env,
         stdout=subprocess.DEVNULL,
@@ -278,7 +272,7 @@ def test_a_killed_sweep_started_again_continues_itsruns_of(tmp_path: Path) -> No
     left = sorted(k for k, r in before.items() if r.info.status != "FINISHED")
     assert left, "the sweep ended before it could be killed"
 
-    again = run_cli("cdqn.train", command(folders["killed"])[3:], folders["killed"], 600)
+    again = run_cli("cdqn.train", sweep(folders["killed"]), folders["killed"], 600)
     assert again.returncode == 0, again.stderr[-3000:]
     after = _by_member(uri)
     reference = _by_member(f"sqlite:///{folders['reference'] / 'mlflow.db'}")
