@@ -187,6 +187,8 @@ class Tag:
     """How a tuning trial ended: complete, pruned or failed."""
     STOPPED: Final = "stopped"
     """On a study's parent run: why it started no further trial (``tune.time_limit``)."""
+    START_FROM: Final = "start_from"
+    """On a tuning trial: the preset whose specification it trained (``tune.warm_start``)."""
 
 
 class Artifact:

@@ -61,7 +61,13 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    import os
+
     from cdqn.cli import start_hydra
+    from cdqn.tuning.clock import COMMAND_START_ENV, process_start
+
+    # the study's time limit counts from here; the launcher's workers inherit the start
+    os.environ[COMMAND_START_ENV] = repr(process_start())
 
     # the module's own main, not __main__'s: the joblib launcher's workers (tune.worker=0,1)
     # then import the task function and the config schema instead of unpickling copies

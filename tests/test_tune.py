@@ -99,9 +99,10 @@ def _overrides(tmp: Path, study: str, trials: int, extra: list[str] | None = Non
     ]
 
 
-TEST_DEFAULTS = {"tune.recheck_trials": 0, "tune.eval_processes": 1}
-"""What a test study does unless the test asks otherwise: no rechecks, and its evaluation
-in the study's own process (the end-to-end test trains them, split over processes)."""
+TEST_DEFAULTS = {"tune.recheck_trials": 0, "tune.eval_processes": 1, "tune.warm_start": "[]"}
+"""What a test study does unless the test asks otherwise: no rechecks, its evaluation in the
+study's own process (the end-to-end test trains them, split over processes), and every trial
+sampled (tests/test_tune_warm_start.py starts from presets)."""
 
 
 def _study(overrides: list[str]) -> dict:
@@ -477,6 +478,10 @@ def test_two_workers_through_the_joblib_launcher_share_one_study(tmp_path: Path)
     assert proc.returncode == 0, proc.stderr[-3000:]
 
     study = optuna.load_study(study_name="par", storage=f"sqlite:///{tmp_path / 'optuna.db'}")
+    # the time limit counts from the command's start, before the launcher started its
+    # workers (the command wrote the sweep's multirun.yaml first), not from a worker's start
+    (launched,) = (tmp_path / "multirun").glob("*/multirun.yaml")
+    assert study.user_attrs["clock_start"] < launched.stat().st_mtime
     trials = study.trials
     assert sorted(t.number for t in trials) == [0, 1, 2, 3, 4]  # exactly tune.trials
     assert {t.state.name for t in trials} <= {"COMPLETE", "PRUNED"}

@@ -16,12 +16,16 @@ from optuna.trial import FrozenTrial, TrialState
 from cdqn.cli import check_overrides
 from cdqn.records import Tag
 from cdqn.tuning.clock import (
+    COMMAND_START_ENV,
+    END_MARGIN,
     START,
     START_ALLOWANCE,
     EvaluationSize,
     Pace,
     StudyClock,
+    command_start,
     estimate,
+    process_start,
     recorded_stop,
 )
 from cdqn.tuning.evaluation import eval_processes
@@ -152,6 +156,26 @@ def test_workers_share_the_clock_and_a_new_invocation_restarts_it(tmp_path: Path
     assert StudyClock(other, None, size, joined=False).start > time.time() - 5.0  # restarted
 
 
+def test_the_clock_starts_at_the_command_start_its_workers_inherit(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``python -m cdqn.tune`` sets :data:`COMMAND_START_ENV` to its process's start; a worker
+    that opens the study starts the clock there, and keeps a margin of the limit free."""
+    before = time.time()
+    assert before - 3600 * 24 * 365 < process_start() <= before  # this process: started before
+    monkeypatch.delenv(COMMAND_START_ENV, raising=False)
+    assert before <= command_start() <= time.time()  # no command: now
+    monkeypatch.setenv(COMMAND_START_ENV, repr(before - 30.0))
+    assert command_start() == before - 30.0
+    study = optuna.create_study()
+    clock = StudyClock(study, 1000.0, EvaluationSize(2, 1, 10, 1), joined=False)
+    assert clock.start == before - 30.0 and 30.0 <= clock.elapsed() < 60.0
+    assert clock.aim == pytest.approx(1000.0 * (1 - END_MARGIN))
+    for bad in ("soon", repr(time.time() + 100.0)):  # unreadable, in the future: now
+        monkeypatch.setenv(COMMAND_START_ENV, bad)
+        assert before <= command_start() <= time.time()
+
+
 def test_the_clock_stops_when_one_more_trial_and_the_evaluation_would_overrun() -> None:
     study = optuna.create_study()
     limit = 100.0 + START_ALLOWANCE
@@ -179,9 +203,10 @@ def test_a_running_trial_is_overdue_when_the_evaluation_would_end_past_the_limit
     clock._asked = -float("inf")
     assert not clock.overdue()
     study.add_trial(_trial(1, 5.0, 200, TrialState.COMPLETE))  # τ = 0.025 s: T_eval 5 s + start
-    clock.start = time.time() - (limit - 5.0 - START_ALLOWANCE - 2.0)
+    assert clock.aim == pytest.approx(limit * (1 - END_MARGIN))
+    clock.start = time.time() - (clock.aim - 5.0 - START_ALLOWANCE - 2.0)
     clock._asked = -float("inf")
-    assert not clock.overdue()  # the evaluation still ends 2 s before the limit
+    assert not clock.overdue()  # the evaluation still ends 2 s before limit − margin
     clock.start -= 4.0
     assert clock.overdue()
     assert not StudyClock(study, None, EvaluationSize(2, 1, 100, 1), joined=False).overdue()

@@ -41,6 +41,14 @@ the evaluation still end within the limit (:meth:`EvaluationSize.time_for_rechec
 A population trains its members side by side in one process, so a trial of K members and
 an evaluation process of K members cost alike per member-episode.
 
+The limit is the user's: the clock starts when the command started (the start of the
+``python -m cdqn.tune`` process, which its launcher's workers receive in
+:data:`COMMAND_START_ENV`; importing, composing the configuration and starting the workers
+took 18 s of a MountainCar-v0 study), and every rule aims at ``limit − margin``, with
+margin = :data:`END_MARGIN` · limit kept for what the estimates cannot see: an evaluation
+slower than the trials' pace (696 s against an estimated 688 s in that study), the members'
+last episodes before a trial stops, and the summary.
+
 The workers of a study share one clock: the worker that opens the study's MLflow parent run
 (the first one, or the first after a restart) writes the start time into the study
 (``clock_start``, seconds since the epoch); a worker that joins the open parent run reads
@@ -52,6 +60,7 @@ from __future__ import annotations
 import bisect
 import logging
 import math
+import os
 import statistics
 import time
 from collections.abc import Sequence
@@ -113,6 +122,36 @@ class Pace:
     def projected(self) -> float | None:
         """τ_run (class docstring), or None before a quarter of the episodes show it."""
         return self._projected
+
+
+END_MARGIN = 0.02
+"""Share of ``tune.time_limit`` kept free at the end (module docstring)."""
+COMMAND_START_ENV = "CDQN_COMMAND_START"
+"""Environment variable: the command's start, seconds since the epoch (:func:`command_start`)."""
+
+
+def process_start() -> float:
+    """This process's start, seconds since the epoch (Linux ``/proc``; elsewhere, now)."""
+    try:
+        with open("/proc/self/stat") as f:
+            ticks = int(f.read().rsplit(")", 1)[1].split()[19])  # field 22, starttime
+        with open("/proc/stat") as f:
+            boot = next(float(ln.split()[1]) for ln in f if ln.startswith("btime "))
+        return boot + ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, StopIteration):
+        return time.time()
+
+
+def command_start() -> float:
+    """When the user's command started: :data:`COMMAND_START_ENV`, which ``python -m
+    cdqn.tune`` sets to its process's start and its launcher's workers inherit; now when it
+    is unset (a study run from Python), unreadable or in the future."""
+    now = time.time()
+    try:
+        start = float(os.environ[COMMAND_START_ENV])
+    except (KeyError, ValueError):
+        return now
+    return start if start <= now else now
 
 
 START_ALLOWANCE = 60.0
@@ -275,10 +314,12 @@ class StudyClock:
         invocation opened it) and reads the clock; otherwise, or when the recorded start is
         older than the limit (a parent run left open by a killed process), it starts it."""
         self.study, self.limit, self.size = study, limit, size
+        self.aim = None if limit is None else limit * (1.0 - END_MARGIN)
+        """The time the rules aim at: limit − margin (module docstring)."""
         start = study.user_attrs.get(START)
         stale = start is None or (limit is not None and time.time() - float(start) > limit)
         if not joined or stale:
-            study.set_user_attr(START, time.time())
+            study.set_user_attr(START, command_start())
             study.set_user_attr(STOP, None)
         self.start = float(study.user_attrs[START])
         self._asked: float = -math.inf
@@ -300,7 +341,7 @@ class StudyClock:
         (:meth:`Pace.projected`: it may complete and be the one evaluated; None until a
         quarter of its member-episodes show it).  Asked at every step: the storage is
         read at most once a second."""
-        if self.limit is None:
+        if self.aim is None:
             return False
         now = time.monotonic()
         if now - self._asked >= 1.0:
@@ -314,19 +355,19 @@ class StudyClock:
         if self._tau is None:
             return False
         tau = max(self._tau, pace or 0.0)
-        return self.elapsed() + self.size.seconds(tau) > self.limit
+        return self.elapsed() + self.size.seconds(tau) > self.aim
 
     def check(self) -> Stop | None:
         """A :class:`Stop` when one more trial and the evaluation would end past the limit
         (recorded in the study), else None."""
-        if self.limit is None:
+        if self.limit is None or self.aim is None:
             return None
         trials = self.study.get_trials(deepcopy=False)
         est = estimate(trials, self.size)
         elapsed = self.elapsed()
-        if est is None or elapsed + est.total <= self.limit:
+        if est is None or elapsed + est.total <= self.aim:
             return None
-        stop = Stop(self.limit, elapsed, est.total, too_small=est.total > self.limit)
+        stop = Stop(self.limit, elapsed, est.total, too_small=est.total > self.aim)
         self.study.set_user_attr(STOP, stop.__dict__)
         log.info("time limit %g s: %.0f s elapsed, one more trial (%.0f s) and the "
                  "evaluation (%.0f s, %.3g s per member-episode) would end past it; no further "

@@ -10,6 +10,8 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from cdqn.config import CONF_DIR, ConfigError
+
 ENV_KEYS = ("name", "id", "kwargs", "max_episode_steps", "obs_indices", "normalize",
             "normalize_scale", "rbf_centres", "rbf_width", "solve_threshold", "eps_dec",
             "eps_schedule")  # fmt: skip
@@ -24,6 +26,25 @@ NETWORK_KEYS = ("width", "dtype")
 α and exploration were tuned on it."""
 DDQN_KEYS = ("train_freq", "batch_size", "buffer_size", "learning_starts", "discount")
 """Double DQN's controller settings a preset carries."""
+
+
+def specification_of(
+    name: str, preset_dir: str | Path
+) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
+    """The best specification of the preset ``name`` and the space it was searched in
+    (``extra.tuned.specification``, ``extra.tuned.space``), from
+    ``<preset_dir>/weights/<name>.yaml`` or else the shipped ``conf/weights/<name>.yaml``;
+    :class:`~cdqn.config.ConfigError` when neither holds them."""
+    folders = [Path(preset_dir) / "weights", CONF_DIR / "weights"]
+    for folder in folders:
+        path = folder / f"{name}.yaml"
+        if path.is_file():
+            tuned = OmegaConf.select(OmegaConf.load(path), "extra.tuned")
+            tuned = OmegaConf.to_container(tuned) if OmegaConf.is_dict(tuned) else None
+            if not isinstance(tuned, dict) or not isinstance(tuned.get("specification"), dict):
+                raise ConfigError(f"{path} is no tuned preset (no extra.tuned.specification)")
+            return tuned["specification"], tuned.get("space") or {}
+    raise ConfigError(f"no preset {name}.yaml in {' or '.join(map(str, folders))}")
 
 
 def write_preset(cfg: DictConfig, name: str, folder: Path, best: Any, tune: Any) -> Path:

@@ -120,6 +120,11 @@ class TuneSettings:
     pruner: PrunerConfig = field(default_factory=PrunerConfig)
     space: dict[str, ParamSpec] = field(default_factory=dict)
     """The search space, name → :class:`ParamSpec` (conf/space/<controller>.yaml)."""
+    warm_start: list[str] = field(default_factory=list)
+    """Environments (names of studies' environments) whose tuned presets for the same agent,
+    ``tuned_<name>-<agent>``, give a new study its first trials: their specifications, fitted
+    to this study's space (:func:`cdqn.tuning.space.fitted_specification`); looked up in
+    ``preset_dir``, then among the shipped presets."""
     preset: str | None = None
     """Name of the weights preset written for the best trial (null: tuned_<study>)."""
     preset_dir: str = "presets"
@@ -211,6 +216,7 @@ def validate_tune(conf: TuneConfig) -> None:
         )
     if not t.space:
         errors.append("tune.space: empty; give at least one dimension")
+    errors += warm_start_errors(t, conf.controller.name)
     for name, p in t.space.items():
         errors += [f"tune.space.{name}: {e}" for e in _spec_errors(p, conf)]
         for other in p.when or {}:
@@ -218,6 +224,24 @@ def validate_tune(conf: TuneConfig) -> None:
                 errors.append(f"tune.space.{name}.when: {other!r} is no dimension of tune.space")
     if errors:
         raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(errors))
+
+
+def warm_start_preset(name: str, agent: str) -> str:
+    """The preset of ``tune.warm_start`` entry ``name`` for ``agent``."""
+    return f"tuned_{name}-{agent}"
+
+
+def warm_start_errors(t: TuneSettings, agent: str) -> list[str]:
+    """One line per ``tune.warm_start`` entry that names no preset with a specification."""
+    from cdqn.tuning.presets import specification_of
+
+    errors = []
+    for name in t.warm_start:
+        try:
+            specification_of(warm_start_preset(name, agent), t.preset_dir)
+        except ConfigError as err:
+            errors.append(f"tune.warm_start: {name}: {err}")
+    return errors
 
 
 def _spec_errors(p: ParamSpec, conf: Config) -> list[str]:

@@ -193,6 +193,48 @@ def fit_to_budget(
     return out
 
 
+def fitted_specification(
+    space: dict[str, ParamSpec], params: dict[str, Any], searched: dict[str, dict[str, Any]]
+) -> dict[str, Any]:
+    """``params``, a specification another study found in its space ``searched`` (name →
+    the dimension's fields, as a preset records them), as values this ``space`` offers, for
+    a trial to start from.  Dimensions go in the order of ``space``: those whose ``when``
+    holds, that ``params`` gives, and that write the same quantity in both spaces (``path``,
+    ``horizon``, ``scale`` and whether a ``width`` makes a range); a choice not offered
+    becomes the nearest offered number (a continuous γ_eff centre, 6 radial basis centres
+    where only 4 fit), or is left out when no choice is a number; a number is clipped into
+    [low, high].  Dimensions left out are sampled as in any trial."""
+    out: dict[str, Any] = {}
+    for name, p in space.items():
+        if p.when and any(out.get(k, _ABSENT) != v for k, v in p.when.items()):
+            continue
+        value = params.get(name, _ABSENT)
+        if value is _ABSENT or value is None and p.choices is None:
+            continue
+        other = searched.get(name, {})
+        if (
+            other.get("path"),
+            bool(other.get("horizon")),
+            bool(other.get("scale")),
+            other.get("width") is None,
+        ) != (p.path, p.horizon, p.scale, p.width is None):
+            continue  # fmt: skip
+        if p.choices is not None:
+            numbers = [c for c in p.choices if _is_number(c)]
+            if any(value == c and type(value) is type(c) for c in p.choices):
+                out[name] = value
+            elif _is_number(value) and numbers:
+                out[name] = min(numbers, key=lambda c: abs(float(c) - float(value)))
+        elif p.low is not None and p.high is not None and _is_number(value):
+            clipped = min(max(float(value), float(p.low)), float(p.high))
+            out[name] = int(round(clipped)) if p.integer else clipped
+    return out
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def _own_target_path(path: str, weights: Any, controller: str) -> str:
     """``weights.target.<range>`` names that range of the tuned controller's learning target:
     ``weights.controller_target.<controller>.<range>`` where the environment sets it."""

@@ -38,9 +38,15 @@ from cdqn.training.interrupt import GracefulStop
 from cdqn.tuning.clock import CAPPED, MEMBER_EPISODES, EvaluationSize, StudyClock, recorded_stop
 from cdqn.tuning.evaluation import eval_processes, evaluate, write_comparison
 from cdqn.tuning.objective import score_text
-from cdqn.tuning.presets import write_preset
+from cdqn.tuning.presets import specification_of, write_preset
 from cdqn.tuning.report import log_design, plot_study
-from cdqn.tuning.settings import TuneConfig, episode_budget, trial_cap, validate_tune
+from cdqn.tuning.settings import (
+    TuneConfig,
+    episode_budget,
+    trial_cap,
+    validate_tune,
+    warm_start_preset,
+)
 from cdqn.tuning.space import (
     NORMALIZE_PATH,
     RBF_PATH,
@@ -48,6 +54,7 @@ from cdqn.tuning.space import (
     fit_to_box,
     fit_to_budget,
     fit_to_observation,
+    fitted_specification,
 )
 from cdqn.tuning.storage import WORKER_SEED_STRIDE, StudyLock, open_storage
 from cdqn.tuning.tracker import Tracker
@@ -218,6 +225,8 @@ class Study:
             self.clock = StudyClock(study, t.time_limit, size, joined=self.tracker.joined)
             self.tracker.client.set_tag(self.parent, "episodes", str(self.episodes))
             _retry_interrupted(study)
+            if not study.trials:
+                self._warm_start(study)
             done = sum(tr.state in (TrialState.COMPLETE, TrialState.PRUNED)
                        for tr in study.get_trials(deepcopy=False))  # fmt: skip
             n_trials = len(study.trials)
@@ -250,6 +259,23 @@ class Study:
         summary = self.close(study, wall)
         summary["trials_run"] = ran
         return summary
+
+    def _warm_start(self, study: Any) -> None:
+        """Queue a new study's first trials: the specifications of the ``tune.warm_start``
+        presets (what made those environments learn), fitted to this study's space
+        (:func:`cdqn.tuning.space.fitted_specification`); a specification the fitting makes
+        equal to an earlier one is queued once.  They count as trials of the budget, are
+        sampled where they leave a dimension out, and are certified and pruned like any."""
+        t = self.conf.tune
+        queued: list[dict[str, Any]] = []
+        for env_name in t.warm_start:
+            name = warm_start_preset(env_name, self.agent)
+            params = fitted_specification(self.space, *specification_of(name, t.preset_dir))
+            if params in queued:
+                continue
+            queued.append(params)
+            study.enqueue_trial(params, user_attrs={Tag.START_FROM: name})
+            log.info("trial %d starts from %s: %s", len(queued) - 1, name, json.dumps(params))
 
     def close(self, study: Any, wall: float) -> dict[str, Any]:
         """Count the trials, write the plots and the best trial's preset, and evaluate it on
@@ -332,7 +358,7 @@ class Study:
             scores = study.user_attrs.get(key)
             if not isinstance(scores, dict):  # not rechecked yet
                 if not self.clock.size.time_for_recheck(
-                    study, self.clock.elapsed(), t.time_limit, finalists
+                    study, self.clock.elapsed(), self.clock.aim, finalists
                 ):
                     log.info("no time left for the recheck of trial %d (tune.time_limit)",
                              tr.number)  # fmt: skip

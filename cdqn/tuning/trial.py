@@ -13,7 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from cdqn.config import ConfigError
 from cdqn.control.errors import DesignError
-from cdqn.records import Metric
+from cdqn.records import Metric, Tag
 from cdqn.tuning.clock import CAPPED, MEMBER_EPISODES, Pace
 from cdqn.tuning.objective import Progress, area, padded, score_text
 from cdqn.tuning.report import log_design
@@ -175,6 +175,8 @@ class Trial:
             {"trial": str(self.trial.number), "study": t.study, "worker": str(t.worker)},
         )  # fmt: skip
         self.trial.set_user_attr("mlflow_run", self.child)
+        if start := self.trial.user_attrs.get(Tag.START_FROM):
+            self.tracker.client.set_tag(self.child, Tag.START_FROM, start)
         self.trial.set_user_attr("worker", t.worker)
         self.tracker.log_params(self.child, params)
         cfg = self._certified(params)
