@@ -106,3 +106,6 @@ def test_a_new_study_starts_from_the_presets_specifications(tmp_path: Path) -> N
     again = optuna.load_study(study_name="second", storage=storage).trials
     assert len(again) == 4 and Tag.START_FROM not in again[3].user_attrs
     assert json.dumps(searched)  # the shipped preset records the space it was searched in
+    _study(_overrides(tmp_path, "third", 1, warm))  # one trial: one preset queued, none left
+    (only,) = optuna.load_study(study_name="third", storage=storage).trials
+    assert only.user_attrs[Tag.START_FROM] == "tuned_first-hinf_f" and only.state.is_finished()

@@ -264,14 +264,18 @@ class Study:
         """Queue a new study's first trials: the specifications of the ``tune.warm_start``
         presets (what made those environments learn), fitted to this study's space
         (:func:`cdqn.tuning.space.fitted_specification`); a specification the fitting makes
-        equal to an earlier one is queued once.  They count as trials of the budget, are
-        sampled where they leave a dimension out, and are certified and pruned like any."""
+        equal to an earlier one is queued once, and no more than ``tune.trials``.  They count
+        as trials of the budget, are sampled where they leave a dimension out, and are
+        certified and pruned like any."""
         t = self.conf.tune
         queued: list[dict[str, Any]] = []
         for env_name in t.warm_start:
             name = warm_start_preset(env_name, self.agent)
             params = fitted_specification(self.space, *specification_of(name, t.preset_dir))
             if params in queued:
+                continue
+            if len(queued) == t.trials:
+                log.info("tune.trials=%d: %s not queued", t.trials, name)
                 continue
             queued.append(params)
             study.enqueue_trial(params, user_attrs={Tag.START_FROM: name})
