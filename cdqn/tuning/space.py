@@ -30,7 +30,7 @@ def sample(trial: Any, space: dict[str, ParamSpec]) -> dict[str, Any]:
     define-by-run suggest API; dimensions are sampled in the order of ``space``)."""
     out: dict[str, Any] = {}
     for name, p in space.items():
-        if p.when and any(out.get(k, _ABSENT) != v for k, v in p.when.items()):
+        if not _applies(p, out):
             continue
         if p.choices is not None:
             out[name] = trial.suggest_categorical(name, list(p.choices))
@@ -44,6 +44,11 @@ def sample(trial: Any, space: dict[str, ParamSpec]) -> dict[str, Any]:
 
 
 _ABSENT = object()
+
+
+def _applies(p: ParamSpec, chosen: dict[str, Any]) -> bool:
+    """Whether the dimension ``p`` is sampled given the values ``chosen`` so far (its ``when``)."""
+    return not p.when or all(chosen.get(k, _ABSENT) == v for k, v in p.when.items())
 
 
 def apply(cfg: DictConfig, space: dict[str, ParamSpec], params: dict[str, Any]) -> DictConfig:
@@ -206,7 +211,7 @@ def fitted_specification(
     [low, high].  Dimensions left out are sampled as in any trial."""
     out: dict[str, Any] = {}
     for name, p in space.items():
-        if p.when and any(out.get(k, _ABSENT) != v for k, v in p.when.items()):
+        if not _applies(p, out):
             continue
         value = params.get(name, _ABSENT)
         if value is _ABSENT or value is None and p.choices is None:
