@@ -142,6 +142,24 @@ def test_a_trial_is_too_long_past_its_share_of_the_limit() -> None:
     assert not uncapped.too_long(1e9)
 
 
+def test_a_trial_projected_past_its_cap_stops_after_a_quarter_of_it() -> None:
+    """T_cap 450 s: from 112.5 s of training a trial stops when its projected time to play
+    all its episodes (Pace.total) exceeds 450 s; before, its projection does not stop it."""
+    study = optuna.create_study()
+    clock = StudyClock(study, 1800.0, EvaluationSize(10, 2, 200, 1, 3, 450.0), joined=False)
+    assert clock.too_long(112.5, 451.0)
+    assert not clock.too_long(112.0, 3000.0)  # too early to trust its pace
+    assert not clock.too_long(300.0, 449.0) and not clock.too_long(300.0, None)
+    # CliffWalking-like: 50 member-episodes in 112.5 s, 1.5 s each lately, 4 500 to play
+    pace = Pace(4500)
+    for p in range(1, 51):
+        pace.mark(112.5 - 1.5 * (50 - p), p)
+    assert pace.total() == pytest.approx(112.5 + 4450 * 1.5)
+    assert clock.too_long(112.5, pace.total())
+    uncapped = StudyClock(study, 1800.0, EvaluationSize(10, 2, 200, 1, 3), joined=False)
+    assert not uncapped.too_long(1e9, 1e9)
+
+
 def test_workers_share_the_clock_and_a_new_invocation_restarts_it(tmp_path: Path) -> None:
     storage = f"sqlite:///{tmp_path / 'optuna.db'}"
     size = EvaluationSize(2, 1, 10, 1)
@@ -232,6 +250,7 @@ def test_a_running_trial_is_paced_by_its_later_episodes() -> None:
     for p in range(1, 401):
         pace.mark(0.2 * p, p)
     assert pace.projected() is None  # 400 of 2 000: under a quarter
+    assert pace.total() == pytest.approx(80.0 + 1600 * 0.2)  # T_run is projected already
     for p in range(401, 801):
         pace.mark(80.0 + 0.05 * (p - 400), p)
     assert pace.projected() == pytest.approx((100.0 + 1200 * 0.05) / 2000)  # 0.08 s
@@ -322,7 +341,7 @@ def test_trials_longer_than_their_cap_stop_and_the_study_says_so(tmp_path: Path)
                                 storage=f"sqlite:///{tmp_path / 'optuna.db'}").trials:  # fmt: skip
         assert tr.user_attrs["too_long"] is True
         assert "tune.trial_share × tune.time_limit = 0.01 s" in tr.user_attrs["reason"]
-    assert summary["no_result"] == ("no trial completed: 2 trial(s) trained for their cap "
+    assert summary["no_result"] == ("no trial completed: 2 trial(s) stopped at their cap "
                                     "(0.01 s) without ending an episode; give a larger "
                                     "tune.time_limit or tune.trial_share")  # fmt: skip
     parent = _parent(tmp_path, summary["parent_run"])
@@ -343,7 +362,7 @@ def test_the_summary_names_the_episodes_a_trial_fits_at_the_stopped_trials_pace(
     size = EvaluationSize(10, 2, 1500, 1, members=3, trial_cap=450.0)
     # 900 s for 900 member-episodes: a trial of 3 members fits 150 episodes in 450 s
     assert _too_long_hint(study, size) == (
-        ": 2 trial(s) trained for their cap (450 s) at 1 s per member-episode, where a trial "
+        ": 2 trial(s) stopped at their cap (450 s) at 1 s per member-episode, where a trial "
         "of 3 members fits about 150 of its 1500 episodes; give tune.episodes=<at most 150> "
         "(or a lower tune.steps), or a larger tune.time_limit"
     )

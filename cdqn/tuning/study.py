@@ -437,14 +437,14 @@ def _same_environment(study: Any, conf: TuneConfig) -> None:
 
 
 def _too_long_hint(study: Any, size: EvaluationSize) -> str:
-    """What to change when trials stopped at their cap (:data:`cdqn.tuning.trial.TOO_LONG`):
+    """What to change when trials were stopped by their cap (:data:`cdqn.tuning.trial.TOO_LONG`):
     the episodes a trial fits at their measured pace; "" when none stopped there."""
     stopped = [(tr.duration.total_seconds(), int(tr.user_attrs.get(MEMBER_EPISODES, 0)))
                for tr in study.get_trials(deepcopy=False)
                if tr.user_attrs.get(CAPPED) and tr.duration is not None]  # fmt: skip
     if not stopped or size.trial_cap is None:
         return ""
-    head = f": {len(stopped)} trial(s) trained for their cap ({size.trial_cap:g} s)"
+    head = f": {len(stopped)} trial(s) stopped at their cap ({size.trial_cap:g} s)"
     played = sum(e for _, e in stopped)
     if not played:
         return (f"{head} without ending an episode; give a larger tune.time_limit or "

@@ -106,7 +106,7 @@ def train_population(
 ) -> tuple[Progress, Any, int | None]:
     """Train ``cfg``'s population; ``report(n, J_n)`` is called each ``interval`` episodes and
     returns True to prune.  With ``report``, the population also stops when the study's
-    clock is overdue or the trial has trained past its cap
+    clock is overdue or the trial trains, or at its pace will train, past its cap
     (:meth:`cdqn.tuning.clock.StudyClock.overdue`, :meth:`~cdqn.tuning.clock.StudyClock.too_long`).
     Returns the progress, the result and the episode at which it was pruned (None: not
     pruned; :data:`OVERDUE`, :data:`TOO_LONG`: stopped by the clock)."""
@@ -128,7 +128,7 @@ def train_population(
         if clock is None:
             return False
         trained = time.monotonic() - started
-        state["long"] = clock.too_long(trained)
+        state["long"] = clock.too_long(trained, pace.total())
         state["overdue"] = not state["long"] and clock.overdue(pace.projected())
         return bool(state["overdue"] or state["long"])
 
@@ -246,9 +246,10 @@ class Trial:
                           f"time limit ({t.time_limit:g} s)")  # fmt: skip
                 log.info("trial %d %s", self.trial.number, reason)
             elif pruned_at == TOO_LONG:
-                reason = (f"{stopped}: it trained for its cap, tune.trial_share × "
-                          f"tune.time_limit = {self.s.clock.size.trial_cap:g} s, after which "
-                          "it and its evaluation would no longer fit the limit")  # fmt: skip
+                reason = (f"{stopped}: at its pace it trains for longer than its cap, "
+                          f"tune.trial_share × tune.time_limit = "
+                          f"{self.s.clock.size.trial_cap:g} s, after which it and its "
+                          "evaluation would no longer fit the limit")  # fmt: skip
                 self.trial.set_user_attr(CAPPED, True)
                 log.info("trial %d %s", self.trial.number, reason)
             else:
