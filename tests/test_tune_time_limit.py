@@ -144,12 +144,13 @@ def test_a_trial_is_too_long_past_its_share_of_the_limit() -> None:
 
 def test_a_trial_projected_past_its_cap_stops_after_a_quarter_of_it() -> None:
     """T_cap 450 s: from 112.5 s of training a trial stops when its projected time to play
-    all its episodes (Pace.total) exceeds 450 s; before, its projection does not stop it."""
+    all its episodes (Pace.total) exceeds two caps, 900 s; before, its projection does not
+    stop it."""
     study = optuna.create_study()
     clock = StudyClock(study, 1800.0, EvaluationSize(10, 2, 200, 1, 3, 450.0), joined=False)
-    assert clock.too_long(112.5, 451.0)
+    assert clock.too_long(112.5, 901.0)
     assert not clock.too_long(112.0, 3000.0)  # too early to trust its pace
-    assert not clock.too_long(300.0, 449.0) and not clock.too_long(300.0, None)
+    assert not clock.too_long(300.0, 899.0) and not clock.too_long(300.0, None)
     # CliffWalking-like: 50 member-episodes in 112.5 s, 1.5 s each lately, 4 500 to play
     pace = Pace(4500)
     for p in range(1, 51):
