@@ -28,7 +28,7 @@ from tests.helpers import episode_returns, run_cli, runs_of, signal_table
 ROOT = CONF_DIR.parent
 SWEEPS = ROOT / "sweeps"
 LAUNCHERS = {
-    "local": "hydra_plugins.hydra_joblib_launcher.joblib_launcher.JoblibLauncher",
+    "local": "hydra_plugins.cdqn_launcher.cdqn_launcher.CdqnLocalLauncher",
     "slurm": "hydra_plugins.hydra_submitit_launcher.submitit_launcher.SlurmLauncher",
     "ray_cluster": "hydra_plugins.hydra_ray_launcher.ray_launcher.RayLauncher",
 }
@@ -183,21 +183,71 @@ def test_the_store_is_prepared_before_a_multirun_starts(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_an_interrupted_local_sweep_started_again_skips_what_finished(tmp_path: Path) -> None:
-    """The smoke sweep through the joblib launcher, twice: the second time every run is
-    skipped (a real multirun with a real store)."""
+def _start_sweep(args: list[str], folder: Path) -> subprocess.Popen[bytes]:
+    """``python -m cdqn.train <args>`` started in ``folder`` as its own process group (its
+    workers with it), output discarded."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "cdqn.train", *args],
+        cwd=folder,
+        env={**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"},
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+
+
+@pytest.mark.slow
+def test_a_local_sweep_stopped_by_sigterm_continues_then_skips_what_finished(
+    tmp_path: Path,
+) -> None:
+    """The smoke sweep through the joblib launcher (two populations of two seeds, side by
+    side) gets SIGTERM in its parent process alone (as from ``kill <pid>`` or ``timeout``)
+    while both train: the workers stop too, each member is KILLED with its checkpoint,
+    nothing of the command is left running and it exits with 143.  The same command again
+    continues the same runs to FINISHED; a third time skips all four (a real multirun with a
+    real store)."""
     args = ["-m", "--config-dir", str(SWEEPS), "--config-name", "smoke", "env=cartpole",
-            "controller=hinf_f,ddqn", "hydra.launcher.n_jobs=2",
-            f"hydra.sweep.dir={tmp_path / 'multirun'}"]  # fmt: skip
-    out = run_cli("cdqn.train", args, tmp_path, timeout=600)
-    assert out.returncode == 0, out.stderr[-2000:]
+            "controller=hinf_f,hinf", "train.episodes=1000", "train.checkpoint_every=10",
+            "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={tmp_path / 'multirun'}"]  # fmt: skip
+    proc = _start_sweep(args, tmp_path)
+    deadline = time.monotonic() + 300
+    try:
+        while proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.005)
+            if len(list(tmp_path.glob(CHECKPOINTS))) == 4:  # both populations mid-way
+                break
+        assert proc.poll() is None, "the sweep ended before it could be stopped"
+        proc.send_signal(signal.SIGTERM)  # the parent only, not its process group
+        assert proc.wait(120) == 128 + signal.SIGTERM
+        while time.monotonic() < deadline:  # the workers end with it
+            try:
+                os.killpg(proc.pid, 0)
+            except ProcessLookupError:
+                break
+            time.sleep(0.05)
+        else:
+            pytest.fail("workers of the stopped sweep are still running")
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(30)
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
-    first = {r.info.run_id for r in runs_of(uri)}
-    assert len(first) == 4
+    stopped = _by_member(uri)
+    assert len(stopped) == 4 and {r.info.status for r in stopped.values()} == {"KILLED"}
+    assert all("SIGTERM" in r.data.tags["failure_reason"] for r in stopped.values())
+
+    again = run_cli("cdqn.train", args, tmp_path, timeout=600)
+    assert again.returncode == 0, again.stderr[-2000:]
+    continued = _by_member(uri)
+    assert sorted(continued) == sorted(stopped)
+    for key, r in continued.items():
+        assert r.info.run_id == stopped[key].info.run_id and r.info.status == "FINISHED"
+        assert len(episode_returns(MlflowClient(uri), r.info.run_id)) == 1000
+
     out = run_cli("cdqn.train", args, tmp_path, timeout=600)
     assert out.returncode == 0, out.stderr[-2000:]
     assert (out.stdout + out.stderr).count("skipping") == 4
-    assert {r.info.run_id for r in runs_of(uri)} == first
+    assert {r.info.run_id for r in runs_of(uri)} == {r.info.run_id for r in stopped.values()}
 
 
 RESTART = [
@@ -229,7 +279,6 @@ def test_a_killed_sweep_started_again_continues_itsruns_of(tmp_path: Path) -> No
     second is); the same command again
     continues the runs it left RUNNING (no new runs) and the final store equals an
     uninterrupted sweep's: returns and signal rows of every seed."""
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"}
     folders = {name: tmp_path / name for name in ("reference", "killed")}
 
     def sweep(folder: Path) -> list[str]:
@@ -242,14 +291,7 @@ def test_a_killed_sweep_started_again_continues_itsruns_of(tmp_path: Path) -> No
     assert ref.returncode == 0, ref.stderr[-3000:]
     assert "cdqn sweeper: 4 jobs as 2" in ref.stdout + ref.stderr
     uri = f"sqlite:///{folders['killed'] / 'mlflow.db'}"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "cdqn.train", *sweep(folders["killed"])],
-        cwd=folders["killed"],
-        env=env,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        start_new_session=True,
-    )
+    proc = _start_sweep(sweep(folders["killed"]), folders["killed"])
     deadline = time.monotonic() + 300
     try:
         # watch the artifact folders, not the store (a query takes longer than a small
