@@ -1,5 +1,6 @@
-"""The type check: mypy, as ``[tool.mypy]`` in pyproject.toml configures it (the package and
-the analysis), finds no error, so that the suite checks types wherever it runs."""
+"""The type check: mypy, as ``[tool.mypy]`` in pyproject.toml configures it (the package, the
+analysis and the Hydra plugins), finds no error, so that the suite checks types wherever it
+runs."""
 
 from __future__ import annotations
 

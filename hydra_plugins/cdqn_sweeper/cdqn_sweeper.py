@@ -64,10 +64,12 @@ class CdqnSweeper(BasicSweeper):
         super().__init__(max_batch_size, params)
         self.max_population = max_population
 
-    def split_arguments(
+    def split_arguments(  # type: ignore[override]  # the base's is static; batching composes (self)
         self, overrides: list[Override], max_batch_size: int | None
     ) -> list[list[list[str]]]:
-        """The basic sweeper's jobs, seeds batched, in chunks of ``max_batch_size``."""
+        """The basic sweeper's jobs, seeds batched, in chunks of ``max_batch_size`` (an
+        instance method where the basic sweeper's is static: the sweep calls it on the
+        sweeper, and batching composes each job's configuration)."""
         from cdqn.training.batching import batch_jobs
 
         (jobs,) = BasicSweeper.split_arguments(overrides, None)
