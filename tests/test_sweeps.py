@@ -196,6 +196,30 @@ def _start_sweep(args: list[str], folder: Path) -> subprocess.Popen[bytes]:
     )
 
 
+def test_a_stopped_multirun_starts_no_queued_job_and_returns_each_jobs_exit(
+    tmp_path: Path,
+) -> None:
+    """The local launcher's task function: a job's ``SystemExit`` comes back as its exit
+    status, and once a signal has left its status in the stop file no queued job starts."""
+    from hydra_plugins.cdqn_launcher.cdqn_launcher import ExitAsValue, JobExit
+
+    started: list[int] = []
+
+    def job(cfg: DictConfig) -> float:
+        started.append(cfg.n)
+        if cfg.n == 2:
+            sys.exit(128 + signal.SIGTERM)  # as a run that SIGTERM stopped
+        return 1.5
+
+    stop = tmp_path / "stop"
+    task = ExitAsValue(job, stop)
+    assert task(OmegaConf.create({"n": 1})) == 1.5
+    assert task(OmegaConf.create({"n": 2})) == JobExit(143)
+    stop.write_text("143")  # what the launcher's SIGTERM handler leaves
+    assert task(OmegaConf.create({"n": 3})) == JobExit(143)
+    assert started == [1, 2]
+
+
 @pytest.mark.slow
 def test_a_local_sweep_stopped_by_sigterm_continues_then_skips_what_finished(
     tmp_path: Path,

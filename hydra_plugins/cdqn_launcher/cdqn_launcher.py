@@ -14,24 +14,29 @@ and a job that exits returns its exit status to the launcher instead of raising.
 worker stops as a single run does (at the end of the current episode, checkpointed, its runs
 marked KILLED; a second signal stops it at once, :mod:`cdqn.training.interrupt`), the
 launcher waits for all of them, and the command then exits with the largest status of its
-jobs (143 after SIGTERM, 130 after Ctrl-C).  Running the same command again continues.  A
-first Ctrl-C reaches the workers from the terminal (the whole process group); the launcher
-waits for them, and a second Ctrl-C stops it at once.
+jobs (143 after SIGTERM, 130 after Ctrl-C).  Jobs still queued then do not start: the
+signal leaves a stop file that a worker reads before it starts a job.  Running the same
+command again continues.  A first Ctrl-C reaches the workers from the terminal (the whole
+process group); the launcher waits for them, and a second Ctrl-C stops it at once.
 
 Selected in ``conf/hydra/launcher/local.yaml``; the ``cdqn_local`` option of the
 ``hydra/launcher`` group is registered here.
 """
 
+import atexit
 import contextlib
 import logging
 import multiprocessing
 import os
+import shutil
 import signal
 import sys
+import tempfile
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 from types import FrameType
 from typing import Any
 
@@ -71,12 +76,16 @@ def exit_status(code: object) -> int:
 
 class ExitAsValue:
     """A worker's task function: the job's own, with ``SystemExit`` returned as a
-    :class:`JobExit` (module docstring).  Picklable where the job's function is."""
+    :class:`JobExit`, and not started once ``stop_file`` holds the exit status of a signal
+    (module docstring).  Picklable where the job's function is."""
 
-    def __init__(self, task: TaskFunction) -> None:
+    def __init__(self, task: TaskFunction, stop_file: Path) -> None:
         self.task = task
+        self.stop_file = stop_file
 
     def __call__(self, cfg: DictConfig) -> Any:
+        if self.stop_file.exists():
+            return JobExit(int(self.stop_file.read_text() or 1))
         try:
             return self.task(cfg)
         except SystemExit as stop:
@@ -90,15 +99,17 @@ def workers() -> list[int]:
 
 
 @contextmanager
-def signals_to_workers() -> Iterator[None]:
+def signals_to_workers(stop_file: Path) -> Iterator[None]:
     """While the block runs, each SIGTERM to this process is sent on to its workers, and a
-    first SIGINT waits for them (module docstring); the process goes on waiting."""
+    first SIGINT waits for them; either writes its exit status into ``stop_file``, so that
+    no queued job starts (module docstring).  The process goes on waiting."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     interrupts = 0
 
     def on_term(signum: int, frame: FrameType | None) -> None:
+        stop_file.write_text(str(128 + signum))
         pids = workers()
         log.warning("SIGTERM: passed on to %d worker(s); each stops at the end of its "
                     "episode (send it again to stop them at once)", len(pids))  # fmt: skip
@@ -111,6 +122,7 @@ def signals_to_workers() -> Iterator[None]:
         interrupts += 1
         if interrupts > 1:
             raise KeyboardInterrupt
+        stop_file.write_text(str(128 + signum))
         log.warning("SIGINT: waiting for the workers to stop at the end of their episodes "
                     "(press Ctrl-C again to stop at once)")  # fmt: skip
 
@@ -131,14 +143,16 @@ class CdqnLocalLauncher(JoblibLauncher):
     def setup(
         self, *, hydra_context: HydraContext, task_function: TaskFunction, config: DictConfig
     ) -> None:
-        super().setup(
-            hydra_context=hydra_context, task_function=ExitAsValue(task_function), config=config
-        )
+        folder = tempfile.mkdtemp(prefix="cdqn-multirun-")
+        atexit.register(shutil.rmtree, folder, ignore_errors=True)
+        self.stop_file = Path(folder) / "stop"
+        task = ExitAsValue(task_function, self.stop_file)
+        super().setup(hydra_context=hydra_context, task_function=task, config=config)
 
     def launch(
         self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int
     ) -> Sequence[JobReturn]:
-        with signals_to_workers():
+        with signals_to_workers(self.stop_file):
             runs = super().launch(job_overrides, initial_job_idx)
         done = [r.return_value for r in runs if r.status == JobStatus.COMPLETED]
         exits = [value.code for value in done if isinstance(value, JobExit)]
