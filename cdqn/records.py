@@ -214,6 +214,8 @@ class Artifact:
     """Folder of evaluations: ``returns-seed<seed>-n<episodes>.csv`` of ``cdqn.evaluate``."""
     EVALUATION_RETURNS: Final = "evaluation/returns.json"
     """A tuning evaluation's return curves, per seed."""
+    EVALUATION_SEEDS: Final = "evaluation/seeds.json"
+    """What each seed of a tuning evaluation did (:mod:`cdqn.tuning.diagnosis`)."""
 
 
 def folder(path: str) -> str:

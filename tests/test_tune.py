@@ -14,7 +14,7 @@ import optuna
 import pytest
 from hydra import compose, initialize_config_dir
 from mlflow.tracking import MlflowClient
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
 from cdqn.control.target import stable_over_box
 from cdqn.training.batching import batchable
@@ -785,6 +785,11 @@ def test_the_episode_budget_follows_the_environments_cap() -> None:
     assert episode_budget(TuneSettings(episodes=42), 500) == 42
 
 
+def tuned_box(summary: dict) -> DictConfig:
+    """``weights.theta_bounds`` of a study's preset."""
+    return OmegaConf.load(summary["preset"]).weights.theta_bounds
+
+
 @pytest.mark.slow
 def test_both_agents_tuned_alike_compared_and_their_presets_reproduce_the_setting(
     tmp_path: Path,
@@ -819,6 +824,34 @@ def test_both_agents_tuned_alike_compared_and_their_presets_reproduce_the_settin
     client = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}")
     arts = {a.path for a in client.list_artifacts(ddqn["parent_run"], "comparison")}
     assert arts == {"comparison/comparison.md", "comparison/comparison.png"}
+
+    # each evaluation keeps what its seeds did; the comparison says why a design falls short
+    for summary, agent in ((design, "hinf_f"), (ddqn, "ddqn")):
+        record = summary["evaluation"]["record"]
+        (evaluation,) = _runs(tmp_path, kind="evaluation", agent=agent)
+        members = _runs(tmp_path, **{"mlflow.parentRunId": evaluation.info.run_id})
+        assert sorted(record["seeds"]) == sorted(m.data.tags["seed"] for m in members)
+        for m in members:
+            seed = record["seeds"][m.data.tags["seed"]]
+            lengths = client.get_metric_history(m.info.run_id, "episode_length")
+            assert seed["steps"] == sum(int(x.value) for x in lengths)
+            assert seed["final"] == pytest.approx(m.data.metrics["final_score"])
+            assert 0.0 <= seed["epsilon"] <= 1.0
+            if agent == "ddqn":
+                train_freq = summary["best_params"]["train_freq"]
+                assert seed["learned_per_step"] == pytest.approx(32 / train_freq)
+                assert "theta1_outside_box" not in seed and record["design"] is None
+            else:
+                assert seed["learned_per_step"] >= 1.0
+                assert 0.0 <= seed["theta1_outside_box"] <= 1.0
+                # the box the study measured and the design was certified on
+                assert record["design"]["theta1"] == list(tuned_box(summary).theta1)
+                assert record["design"]["gamma_eff"] == float(m.data.tags["design_gamma_eff"])
+        stored = client.list_artifacts(evaluation.info.run_id, "evaluation")
+        assert "evaluation/seeds.json" in {a.path for a in stored}
+    bar = ddqn["evaluation"]["final_score"] - ddqn["evaluation"]["final_std"]
+    short = design["evaluation"]["final_score"] < bar
+    assert ("Where hinf_f falls short" in ddqn["comparison"]["table"]) == short
 
     for summary, agent in ((design, "hinf_f"), (ddqn, "ddqn")):
         preset = Path(summary["preset"])

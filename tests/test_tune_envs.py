@@ -14,6 +14,7 @@ from omegaconf import OmegaConf
 from cdqn.config import ConfigError, EnvConfig
 from cdqn.envs import adopt
 from cdqn.training.run import run
+from cdqn.tuning.diagnosis import shortfall_text
 from cdqn.tuning.evaluation import comparison_table, random_policy, summarise
 from cdqn.tuning.objective import score_text
 from cdqn.tuning.report import summary_text
@@ -41,6 +42,49 @@ def test_the_comparison_says_by_how_much_a_design_reaches_or_falls_short() -> No
     table = comparison_table([base, low, high], None, 4)
     assert "hinf_f falls short of Double DQN's final score minus one std (0.52) by 0.09." in table
     assert "hinf reaches Double DQN's final score minus one std (0.52) by 0.08." in table
+
+
+def _seed(final: float, steps: int, per_step: float, eps: float, **shares: float) -> dict:
+    return {"final": final, "steps": steps, "learned_per_step": per_step, "epsilon": eps,
+            **shares}  # fmt: skip
+
+
+def test_a_shortfall_is_set_beside_what_each_agent_did_on_its_seeds() -> None:
+    """Acrobot-like: Double DQN −120 ± 20 on four seeds (bar −140); the design ends at −196.25
+    because one seed stays at the cap (−500) while the other three end at −95: the seeds
+    below the bar, the average of the others, the medians, the steps, the transitions per
+    step, ε and the box with the steps outside it (Θ2/Θ1 up to 1.25: γ_eff below 0.8)."""
+    ddqn = {"seeds": {str(1000 + i): _seed(f, 40_000, 8.0, 0.01)
+                      for i, f in enumerate([-100.0, -100.0, -140.0, -140.0])},
+            "design": None}  # fmt: skip
+    shares = {"theta1_outside_box": 0.5, "ratio_above_box": 0.02, "ratio_below_box": 0.1}
+    design = {
+        "seeds": {
+            "1000": _seed(-95.0, 20_000, 1.0, 0.01, **shares),
+            "1001": _seed(-500.0, 50_000, 1.0, 0.01, **{**shares, "theta1_outside_box": 0.9}),
+            "1002": _seed(-95.0, 20_000, 1.5, 0.03, **shares),
+            "1003": _seed(-95.0, 30_000, 1.5, 0.03, **shares),
+        },
+        "design": {"theta1": [100.0, 400.0], "ratio": [0.8, 1.25], "gamma_eff": 0.7},
+    }
+    text = shortfall_text("hinf_f", design, ddqn, -140.0, 2)
+    assert text.splitlines()[1:] == [
+        "Where hinf_f falls short (the same fresh seeds; shares over each seed's last 100 "
+        "episodes):",
+        "- seeds below the bar: 1 of 4 (1001: -500.00); the other 3 average -95.00; median "
+        "final score hinf_f -95.00, Double DQN -120.00",
+        "- environment steps per seed: hinf_f 30,000, Double DQN 40,000; transitions learned "
+        "from per step: hinf_f 1.25, Double DQN 8.00",
+        "- ε at the end: hinf_f 0.02, Double DQN 0.01",
+        "- NTK box of the design: Θ1 ∈ [100, 400], Θ2/Θ1 ∈ [0.8, 1.25] (a loop stable over it "
+        "needs γ_eff below 1/1.25 = 0.8; the design keeps γ_eff 0.7); steps outside it: Θ1 "
+        "outside 60.0 %, Θ2/Θ1 above 2.0 %, Θ2/Θ1 below 10.0 % (mean over seeds)",
+    ]
+    low = {s: {**r, "final": -150.0} for s, r in design["seeds"].items()}
+    all_low = {**design, "design": None, "seeds": low}
+    text = shortfall_text("hinf_f", all_low, ddqn, -140.0, 2)
+    assert "- seeds below the bar: 4 of 4 (1000: -150.00, 1001: -150.00, 1002: -150.00, " in text
+    assert "the other" not in text and "NTK box" not in text
 
 
 def test_the_comparison_says_how_far_each_agent_ends_above_a_random_policy() -> None:

@@ -14,6 +14,7 @@ import copy
 import itertools
 import json
 import logging
+import math
 import os
 import subprocess
 import sys
@@ -25,12 +26,17 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf, read_write
 
-from cdqn.records import Artifact, Metric
+from cdqn.records import Artifact, Metric, folder
+from cdqn.tuning.diagnosis import evaluation_record, shortfall_text
 from cdqn.tuning.objective import area, decimals, ma100, padded, score_text
 
 log = logging.getLogger("cdqn.tune")
 RETURNS = Artifact.EVALUATION_RETURNS
 """Artifact of an evaluation run: ``{seed: [return per episode]}``."""
+UNTUNED = " (untuned)"
+"""Suffix of the comparison's row of a study's untuned ``tune.baseline``."""
+SEEDS = Artifact.EVALUATION_SEEDS
+"""Artifact of an evaluation run: what each seed did (:mod:`cdqn.tuning.diagnosis`)."""
 
 
 def evaluate(study: Any, cfg: DictConfig, name: str, kind: str = "evaluation") -> dict[str, Any]:
@@ -55,14 +61,26 @@ def evaluate(study: Any, cfg: DictConfig, name: str, kind: str = "evaluation") -
     curves = {s: padded(tracker.returns(rid), n, s in failed) or tracker.returns(rid)
               for s, rid in zip(seeds, ids, strict=True)}  # fmt: skip
     row = summarise(agent, curves, n, conf.env.solve_threshold)
-    out = {**row, "seeds": seeds, "diverged": len(failed), "seconds": time.perf_counter() - t0}
+    out = {
+        **row,
+        "seeds": seeds,
+        "diverged": len(failed),
+        "seconds": time.perf_counter() - t0,
+        "record": evaluation_record(tracker.client, _finals(curves), members, cfg),
+    }
     tracker.client.log_dict(run, {str(s): list(map(float, c)) for s, c in curves.items()}, RETURNS)
+    tracker.client.log_dict(run, out["record"], SEEDS)
     tracker.metrics(run, {Metric.OBJECTIVE: row["objective"],
                           Metric.FINAL_SCORE: row["final_score"]})  # fmt: skip
     tracker.end(run, "FINISHED", "complete")
     log.info("%s on seeds %s: J = %.2f, final MA100 = %s (%.0f s)", name, seeds, row["objective"],
              score_text(row["final_score"], row["final_std"]), out["seconds"])  # fmt: skip
     return out
+
+
+def _finals(curves: dict[int, list[float]]) -> dict[int, float]:
+    """Each seed's final score, the mean return of its last 100 episodes (as :func:`summarise`)."""
+    return {s: float(np.mean(c[-100:])) if c else math.nan for s, c in curves.items()}
 
 
 def eval_processes(setting: int, seeds: int) -> int:
@@ -158,11 +176,11 @@ def write_comparison(study: Any, summary: dict[str, Any]) -> dict[str, Any]:
     mine = {**summary["evaluation"], "agent": study.agent, "study": study.conf.tune.study}
     rows = sorted([mine, *rows], key=lambda r: r["agent"])
     if "baseline" in summary:
-        rows.append({**summary["baseline"], "agent": f"{summary['baseline']['agent']} (untuned)",
+        rows.append({**summary["baseline"], "agent": f"{summary['baseline']['agent']}{UNTUNED}",
                      "study": study.conf.tune.study})  # fmt: skip
     env = study.conf.env
     chance = random_policy(env, summary["evaluation"]["seeds"])
-    table = comparison_table(rows, env.solve_threshold, study.episodes, chance)
+    table = comparison_table(rows, env.solve_threshold, study.episodes, chance) + _shortfalls(rows)
     with tempfile.TemporaryDirectory() as tmp:
         (Path(tmp) / "comparison.md").write_text(table + "\n")
         _figure(rows, env, Path(tmp) / "comparison.png", chance)
@@ -220,9 +238,41 @@ def _other_agents(study: Any, mine: dict[str, Any]) -> list[dict[str, Any]]:
         with tempfile.TemporaryDirectory() as tmp:
             path = client.download_artifacts(run.info.run_id, RETURNS, tmp)
             curves = {int(k): v for k, v in json.loads(Path(path).read_text()).items()}
+            record = _record(client, run.info.run_id, tmp)
         row = summarise(agent, curves, study.episodes, conf.env.solve_threshold)
-        rows[agent] = {**row, "study": run.data.tags.get("study", ""), "seeds": sorted(curves)}
+        rows[agent] = {**row, "study": run.data.tags.get("study", ""), "seeds": sorted(curves),
+                       "record": record}  # fmt: skip
     return list(rows.values())
+
+
+def _record(client: Any, run_id: str, tmp: str) -> dict[str, Any] | None:
+    """An evaluation's ``evaluation/seeds.json`` (None for one written without it)."""
+    if not any(a.path == SEEDS for a in client.list_artifacts(run_id, folder(Artifact.EVALUATION))):
+        return None
+    return json.loads(Path(client.download_artifacts(run_id, SEEDS, tmp)).read_text())
+
+
+def _shortfalls(rows: list[dict[str, Any]]) -> str:
+    """:func:`cdqn.tuning.diagnosis.shortfall_text` of each agent whose final score ends
+    below Double DQN's minus one std, where both evaluations kept their seeds' records."""
+    base = next((r for r in rows if r["agent"] == "ddqn"), None)
+    if base is None or not base.get("record"):
+        return ""
+    bar, p = base["final_score"] - base["final_std"], _places(rows)
+    return "".join(
+        "\n" + shortfall_text(r["agent"], r["record"], base["record"], bar, p)
+        for r in rows
+        if r["agent"] != "ddqn"
+        and not r["agent"].endswith(UNTUNED)
+        and r.get("record")
+        and r["final_score"] < bar
+    )
+
+
+def _places(rows: list[dict[str, Any]]) -> int:
+    """Decimals of the comparison's returns: at least two; three where the returns are below
+    0.1 (a goal rarely reached)."""
+    return max(2, decimals(*(v for r in rows for v in (r["final_score"], r["final_std"]))))
 
 
 def comparison_table(
@@ -242,8 +292,7 @@ def comparison_table(
         f"solve episode (median) | {reach} | J (area, {episodes} episodes) |"
     )
     lines = [head, "|---|---|---|---|---|---|"]
-    # at least two decimals; three where the returns are below 0.1 (a goal rarely reached)
-    p = max(2, decimals(*(v for r in rows for v in (r["final_score"], r["final_std"]))))
+    p = _places(rows)
     pj = max(2, decimals(*(r["objective"] for r in rows)))
     for r in rows:
         solve = "n/a" if r["solve_median"] is None else f"{r['solve_median']:.0f}"
