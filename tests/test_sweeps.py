@@ -182,7 +182,6 @@ def test_the_store_is_prepared_before_a_multirun_starts(tmp_path: Path) -> None:
     assert MlflowClient(cfg.tracking.uri).get_experiment_by_name("cdqn") is not None
 
 
-@pytest.mark.slow
 def _start_sweep(args: list[str], folder: Path) -> subprocess.Popen[bytes]:
     """``python -m cdqn.train <args>`` started in ``folder`` as its own process group (its
     workers with it), output discarded."""

@@ -29,19 +29,14 @@ from typing import Any
 import numpy as np
 
 from cdqn.config import BOXED_CONTROLLERS
-from cdqn.records import Metric, Tag
+from cdqn.records import BOX_SERIES, SERIES_PREFIX, Metric, Tag
 
 TAIL = 100
 """Episodes at the end of a run that the per-seed shares average over (the final score's)."""
 
 BOX_SHARES = (Metric.THETA1_OUTSIDE_BOX, Metric.RATIO_ABOVE_BOX, Metric.RATIO_BELOW_BOX)
-BOX_BOUNDS = ("signals/theta1_box_lower", "signals/theta1_box_upper",
-              "signals/ratio_box_lower", "signals/ratio_box_upper")  # fmt: skip
-
-
-def _history(client: Any, run_id: str, key: str) -> list[float]:
-    """Per-episode values of metric ``key`` of a run, in episode order."""
-    return [m.value for m in sorted(client.get_metric_history(run_id, key), key=lambda m: m.step)]
+BOX_BOUNDS = tuple(SERIES_PREFIX + name for name in BOX_SERIES)
+"""Metric keys of the NTK box a run logged: Θ1 lower, upper, Θ2/Θ1 lower, upper."""
 
 
 def learned_per_step(controller: Any, steps: int, replay_updates: float) -> float:
@@ -51,7 +46,7 @@ def learned_per_step(controller: Any, steps: int, replay_updates: float) -> floa
     return 1.0 + replay_updates / steps if steps else math.nan
 
 
-def seed_record(client: Any, member: Any, final: float, controller: Any) -> dict[str, Any]:
+def seed_record(tracker: Any, member: Any, final: float, controller: Any) -> dict[str, Any]:
     """What one evaluation member (a :class:`cdqn.training.result.RunResult`) did; ``final``
     its final score as the comparison counts it (a diverged member's missing episodes at its
     lowest return, :func:`cdqn.tuning.objective.padded`)."""
@@ -61,22 +56,22 @@ def seed_record(client: Any, member: Any, final: float, controller: Any) -> dict
         "steps": int(member.steps),
         "epsilon": float(member.epsilon),
         "learned_per_step": learned_per_step(
-            controller, int(member.steps), float(sum(_history(client, run, Metric.REPLAY_UPDATES)))
+            controller, int(member.steps), float(sum(tracker.history(run, Metric.REPLAY_UPDATES)))
         ),
     }
     for key in BOX_SHARES:
-        tail = _history(client, run, key)[-TAIL:]
+        tail = tracker.history(run, key)[-TAIL:]
         if tail:
             record[key] = float(np.mean(tail))
     return record
 
 
-def design_record(client: Any, run_id: str, cfg: Any) -> dict[str, Any] | None:
+def design_record(tracker: Any, run_id: str, cfg: Any) -> dict[str, Any] | None:
     """The NTK box a member's design was certified on and the γ_eff it keeps (None for an
     agent without a box): the box the run logged (``signals/theta1_box_*``, with
     ``train.signals``), else the configured one a design of ``ntk_bounds=config`` uses
     (``weights.theta_bounds``, where a study writes the box it measured)."""
-    run = client.get_run(run_id)
+    run = tracker.client.get_run(run_id)
     values = [run.data.metrics.get(key) for key in BOX_BOUNDS]
     ctrl = cfg.controller
     if any(v is None for v in values):
@@ -90,15 +85,15 @@ def design_record(client: Any, run_id: str, cfg: Any) -> dict[str, Any] | None:
 
 
 def evaluation_record(
-    client: Any, finals: dict[int, float], members: list[Any], cfg: Any
+    tracker: Any, finals: dict[int, float], members: list[Any], cfg: Any
 ) -> dict[str, Any]:
     """``evaluation/seeds.json`` of an evaluation: each seed's :func:`seed_record` (``finals``
     and ``members`` in seed order) and the first member's :func:`design_record` (the
     members share one design)."""
     seeds = zip(finals.items(), members, strict=True)
     return {
-        "seeds": {str(s): seed_record(client, m, f, cfg.controller) for (s, f), m in seeds},
-        "design": design_record(client, members[0].run_id, cfg) if members else None,
+        "seeds": {str(s): seed_record(tracker, m, f, cfg.controller) for (s, f), m in seeds},
+        "design": design_record(tracker, members[0].run_id, cfg) if members else None,
     }
 
 

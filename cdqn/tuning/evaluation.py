@@ -66,7 +66,7 @@ def evaluate(study: Any, cfg: DictConfig, name: str, kind: str = "evaluation") -
         "seeds": seeds,
         "diverged": len(failed),
         "seconds": time.perf_counter() - t0,
-        "record": evaluation_record(tracker.client, _finals(curves), members, cfg),
+        "record": evaluation_record(tracker, _finals(curves), members, cfg),
     }
     tracker.client.log_dict(run, {str(s): list(map(float, c)) for s, c in curves.items()}, RETURNS)
     tracker.client.log_dict(run, out["record"], SEEDS)

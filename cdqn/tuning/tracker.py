@@ -108,6 +108,10 @@ class Tracker:
         for rid in run_ids:
             delete_artifacts(self.client, rid, ROOT)
 
-    def returns(self, run_id: str) -> list[float]:
-        hist = self.client.get_metric_history(run_id, Metric.EPISODE_RETURN)
+    def history(self, run_id: str, key: str) -> list[float]:
+        """Per-episode values of metric ``key`` of a run, in episode order."""
+        hist = self.client.get_metric_history(run_id, key)
         return [m.value for m in sorted(hist, key=lambda m: m.step)]
+
+    def returns(self, run_id: str) -> list[float]:
+        return self.history(run_id, Metric.EPISODE_RETURN)
