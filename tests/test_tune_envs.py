@@ -85,6 +85,9 @@ def test_a_shortfall_is_set_beside_what_each_agent_did_on_its_seeds() -> None:
     text = shortfall_text("hinf_f", all_low, ddqn, -140.0, 2)
     assert "- seeds below the bar: 4 of 4 (1000: -150.00, 1001: -150.00, 1002: -150.00, " in text
     assert "the other" not in text and "NTK box" not in text
+    many = {str(2000 + i): {**design["seeds"]["1000"], "final": -150.0 - i} for i in range(6)}
+    text = shortfall_text("hinf_f", {"seeds": many, "design": None}, ddqn, -140.0, 2)
+    assert "- seeds below the bar: 6 of 6 (2005: -155.00, …, 2000: -150.00); median" in text
 
 
 def test_the_comparison_says_how_far_each_agent_ends_above_a_random_policy() -> None:

@@ -34,6 +34,9 @@ from cdqn.records import BOX_SERIES, SERIES_PREFIX, Metric, Tag
 TAIL = 100
 """Episodes at the end of a run that the per-seed shares average over (the final score's)."""
 
+LISTED = 5
+"""Seeds below the bar named one by one; more are given as the lowest … the highest."""
+
 BOX_SHARES = (Metric.THETA1_OUTSIDE_BOX, Metric.RATIO_ABOVE_BOX, Metric.RATIO_BELOW_BOX)
 BOX_BOUNDS = tuple(SERIES_PREFIX + name for name in BOX_SERIES)
 """Metric keys of the NTK box a run logged: Θ1 lower, upper, Θ2/Θ1 lower, upper."""
@@ -114,7 +117,9 @@ def shortfall_text(agent: str, mine: dict, base: dict, bar: float, places: int) 
     below = sorted((s for s, r in ours.items() if r["final"] < bar), key=lambda s: ours[s]["final"])
     seeds = f"- seeds below the bar: {len(below)} of {len(ours)}"
     if below:
-        seeds += " (" + ", ".join(f"{s}: {score(ours[s]['final'])}" for s in below) + ")"
+        shown = below if len(below) <= LISTED else [below[0], "…", below[-1]]
+        seeds += " (" + ", ".join(s if s == "…" else f"{s}: {score(ours[s]['final'])}"
+                                  for s in shown) + ")"  # fmt: skip
         rest = [r["final"] for s, r in ours.items() if s not in below]
         if rest:
             seeds += f"; the other {len(rest)} average {score(float(np.mean(rest)))}"
