@@ -30,8 +30,9 @@ import numpy as np
 
 from cdqn.config import BOXED_CONTROLLERS
 from cdqn.records import BOX_SERIES, SERIES_PREFIX, Metric, Tag
+from cdqn.tuning.objective import WINDOW
 
-TAIL = 100
+TAIL = WINDOW
 """Episodes at the end of a run that the per-seed shares average over (the final score's)."""
 
 LISTED = 5
@@ -42,26 +43,20 @@ BOX_BOUNDS = tuple(SERIES_PREFIX + name for name in BOX_SERIES)
 """Metric keys of the NTK box a run logged: Θ1 lower, upper, Θ2/Θ1 lower, upper."""
 
 
-def learned_per_step(controller: Any, steps: int, replay_updates: float) -> float:
-    """Transitions that go into an update per environment step (module docstring)."""
-    if controller.name == "ddqn":
-        return float(controller.batch_size) / float(controller.train_freq)
-    return 1.0 + replay_updates / steps if steps else math.nan
-
-
 def seed_record(tracker: Any, member: Any, final: float, controller: Any) -> dict[str, Any]:
     """What one evaluation member (a :class:`cdqn.training.result.RunResult`) did; ``final``
     its final score as the comparison counts it (a diverged member's missing episodes at its
-    lowest return, :func:`cdqn.tuning.objective.padded`)."""
-    run = member.run_id
-    record: dict[str, Any] = {
-        "final": float(final),
-        "steps": int(member.steps),
-        "epsilon": float(member.epsilon),
-        "learned_per_step": learned_per_step(
-            controller, int(member.steps), float(sum(tracker.history(run, Metric.REPLAY_UPDATES)))
-        ),
-    }
+    lowest return, :func:`cdqn.tuning.objective.padded`).  Transitions per step: Double
+    DQN's ``batch_size / train_freq``; a design's one TD step and its episodic replay's
+    updates (module docstring)."""
+    run, steps = member.run_id, int(member.steps)
+    record: dict[str, Any] = {"final": float(final), "steps": steps,
+                              "epsilon": float(member.epsilon)}  # fmt: skip
+    if controller.name == "ddqn":
+        record["learned_per_step"] = controller.batch_size / controller.train_freq
+        return record
+    replayed = sum(tracker.history(run, Metric.REPLAY_UPDATES))
+    record["learned_per_step"] = 1.0 + replayed / steps if steps else math.nan
     for key in BOX_SHARES:
         tail = tracker.history(run, key)[-TAIL:]
         if tail:

@@ -14,7 +14,6 @@ import copy
 import itertools
 import json
 import logging
-import math
 import os
 import subprocess
 import sys
@@ -28,7 +27,7 @@ from omegaconf import DictConfig, OmegaConf, read_write
 
 from cdqn.records import Artifact, Metric, folder
 from cdqn.tuning.diagnosis import evaluation_record, shortfall_text
-from cdqn.tuning.objective import area, decimals, ma100, padded, score_text
+from cdqn.tuning.objective import area, decimals, final, ma100, padded, score_text
 
 log = logging.getLogger("cdqn.tune")
 RETURNS = Artifact.EVALUATION_RETURNS
@@ -61,26 +60,18 @@ def evaluate(study: Any, cfg: DictConfig, name: str, kind: str = "evaluation") -
     curves = {s: padded(tracker.returns(rid), n, s in failed) or tracker.returns(rid)
               for s, rid in zip(seeds, ids, strict=True)}  # fmt: skip
     row = summarise(agent, curves, n, conf.env.solve_threshold)
-    out = {
-        **row,
-        "seeds": seeds,
-        "diverged": len(failed),
-        "seconds": time.perf_counter() - t0,
-        "record": evaluation_record(tracker, _finals(curves), members, cfg),
-    }
+    out = {**row, "seeds": seeds, "diverged": len(failed), "seconds": time.perf_counter() - t0}
     tracker.client.log_dict(run, {str(s): list(map(float, c)) for s, c in curves.items()}, RETURNS)
-    tracker.client.log_dict(run, out["record"], SEEDS)
+    if kind == "evaluation":  # what the comparison reads (a recheck only chooses the trial)
+        finals = {s: final(c) for s, c in curves.items()}
+        out["record"] = evaluation_record(tracker, finals, members, cfg)
+        tracker.client.log_dict(run, out["record"], SEEDS)
     tracker.metrics(run, {Metric.OBJECTIVE: row["objective"],
                           Metric.FINAL_SCORE: row["final_score"]})  # fmt: skip
     tracker.end(run, "FINISHED", "complete")
     log.info("%s on seeds %s: J = %.2f, final MA100 = %s (%.0f s)", name, seeds, row["objective"],
              score_text(row["final_score"], row["final_std"]), out["seconds"])  # fmt: skip
     return out
-
-
-def _finals(curves: dict[int, list[float]]) -> dict[int, float]:
-    """Each seed's final score, the mean return of its last 100 episodes (as :func:`summarise`)."""
-    return {s: float(np.mean(c[-100:])) if c else math.nan for s, c in curves.items()}
 
 
 def eval_processes(setting: int, seeds: int) -> int:
@@ -148,7 +139,7 @@ def summarise(
     """One agent's row: J, final score (mean ± std over seeds), solve episodes, the mean
     MA100 curve."""
     full = [c for c in curves.values() if len(c) == n]
-    finals = [float(np.mean(c[-100:])) for c in curves.values() if c]
+    finals = [final(c) for c in curves.values() if c]
     solved = []
     if threshold is not None:
         for c in curves.values():

@@ -9,9 +9,13 @@ pruner compares (:mod:`cdqn.tuning.pruner`)."""
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
+
+WINDOW = 100
+"""Episodes of the moving average MA100, and of the final score."""
 
 
 def ma100(returns: list[float]) -> np.ndarray:
@@ -19,8 +23,13 @@ def ma100(returns: list[float]) -> np.ndarray:
     r = np.asarray(returns, float)
     c = np.concatenate([[0.0], np.cumsum(r)])
     e = np.arange(1, len(r) + 1)
-    lo = np.maximum(0, e - 100)
+    lo = np.maximum(0, e - WINDOW)
     return (c[e] - c[lo]) / (e - lo)
+
+
+def final(returns: list[float]) -> float:
+    """The final score: the mean return of the last :data:`WINDOW` episodes (NaN for none)."""
+    return float(np.mean(returns[-WINDOW:])) if len(returns) else math.nan
 
 
 def padded(returns: list[float], n: int, failed: bool) -> list[float] | None:
