@@ -64,12 +64,12 @@ def _round_out(lo: float, hi: float, step: float | None) -> tuple[float, float]:
     if step is None:  # two significant digits, outward
 
         def down(x: float) -> float:
-            e = 10 ** (math.floor(math.log10(x)) - 1)
-            return math.floor(x / e) * e
+            e = 10.0 ** (math.floor(math.log10(x)) - 1)
+            return float(math.floor(x / e) * e)
 
         def up(x: float) -> float:
-            e = 10 ** (math.floor(math.log10(x)) - 1)
-            return math.ceil(x / e) * e
+            e = 10.0 ** (math.floor(math.log10(x)) - 1)
+            return float(math.ceil(x / e) * e)
 
         return down(lo), up(hi)
     return round(math.floor(lo / step) * step, 10), round(math.ceil(hi / step) * step, 10)

@@ -277,8 +277,19 @@ REFUSED = [
     ),
     (  # an image: not flattened into the network's input
         ["env.id=CarRacing-v3", "+env.kwargs.continuous=false"],
-        "env.id='CarRacing-v3': cdqn needs a Box observation of at most 1024 entries "
-        "(flattened), a MultiBinary one, or Discrete ones",
+        "env.id='CarRacing-v3' with env.kwargs={'continuous': False}: cdqn's network takes "
+        "at most 1024 inputs from a Box observation (flattened), a MultiBinary one, or discrete "
+        "ones one-hot (Discrete, MultiDiscrete, a Tuple of them); got Box(0, 255, (96, 96, 3), "
+        "uint8) (27648 inputs)",
+    ),
+    (  # cells 1..600 either side, one-hot: 1200 inputs
+        [f"env.id={TOY}", "+env.kwargs.form=multi_discrete", "+env.kwargs.length=600"],
+        f"env.id='{TOY}' with env.kwargs={{'form': 'multi_discrete', 'length': 600}}: cdqn's "
+        "network takes at most 1024 inputs",
+    ),
+    (  # a continuous variant chosen by a constructor argument
+        ["env.id=LunarLander-v3", "+env.kwargs.continuous=true"],
+        "env.id='LunarLander-v3' with env.kwargs={'continuous': True} has action space Box(",
     ),
     (  # a one-hot observation of 500 features: the grid's size as an order of magnitude
         ["env.id=Taxi-v4", "env.rbf_centres=4"],
@@ -302,6 +313,14 @@ def test_a_cap_or_threshold_given_on_the_command_line_stays_at_the_presets_value
     with command_line(given):
         env = adopt(compose_config(given)).conf.env
     assert (env.max_episode_steps, env.solve_threshold) == (200, 195.0)
+    assert env.name == "FrozenLake-v1-cap200"  # not its registration's 100: another task
+    for other in (["env=acrobot", "env.max_episode_steps=100"], ["env.id=Acrobot-v1",
+                  "env.max_episode_steps=100"]):  # fmt: skip
+        with command_line(other):
+            assert adopt(compose_config(other)).conf.env.name == "Acrobot-v1-cap100"
+    with command_line(["env.id=CliffWalking-v1", "env.max_episode_steps=200"]):
+        name = adopt(compose_config(["env.id=CliffWalking-v1", "env.max_episode_steps=200"]))
+    assert name.conf.env.name == "CliffWalking-v1"  # registered without a cap: the given one
     env = adopt(compose_config(given)).conf.env  # composed in code: the preset's values
     assert (env.max_episode_steps, env.solve_threshold) == (100, 0.7)
 

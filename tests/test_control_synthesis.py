@@ -313,6 +313,9 @@ def test_measured_box_summary() -> None:
     assert box.source == "measured"
     assert box.theta1[0] <= np.quantile(t1, 0.02) and box.theta1[1] >= np.quantile(t1, 0.98)
     assert box.ratio[0] >= 0.8 and box.ratio[1] <= 1.2  # Θ2 ≈ 0 transitions left out
+    # raw observations of ~1e18 (an integer Box at its full range) give Θ1 ~1e37: still a box
+    huge = summarise(np.column_stack([t1 * 1e35, rho * t1 * 1e35]), (0.02, 0.98))
+    assert huge.theta1[0] <= np.quantile(t1, 0.02) * 1e35 < 1e38 < huge.theta1[1] * 10
 
 
 # ------------------------------------------------------------------------ all shipped envs

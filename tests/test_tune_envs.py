@@ -185,11 +185,13 @@ def test_a_tuple_observation_environment_without_cap_or_threshold_is_tuned_as_it
 
 
 def test_a_study_refuses_another_environment_under_its_name(tmp_path: Path) -> None:
-    """The default study name is the label, which says an adopted id's ``env.kwargs`` but not
-    its cap: the 8x8 map without slip is a study of its own (``FrozenLake-v1.is_slippery-false.
-    map_name-8x8-ddqn``), whose preset is named by that label; a second run of the study
-    ``FrozenLake-v1-ddqn`` at another cap is refused before it trains or opens a run, instead of
-    mixing its trials (and preset) with those of the lake at its registered cap."""
+    """The default study name is the label, which says an adopted id's ``env.kwargs`` and a
+    cap other than its registration's: the 8x8 map without slip is a study of its own
+    (``FrozenLake-v1.is_slippery-false.map_name-8x8-ddqn``), whose preset is named by that
+    label, and so is the lake at 50 steps (``FrozenLake-v1-cap50-ddqn``); the study
+    ``FrozenLake-v1-ddqn`` named for a run at another cap is refused before it trains or opens a
+    run, instead of mixing its trials (and preset) with those of the lake at its registered
+    cap."""
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     _store(uri, "cdqn-tune", tmp_path)
     common = [
@@ -204,8 +206,12 @@ def test_a_study_refuses_another_environment_under_its_name(tmp_path: Path) -> N
     label = "FrozenLake-v1.is_slippery-false.map_name-8x8"
     assert own["study"] == f"{label}-ddqn" and own["counts"]["complete"] == 1
     assert Path(own["preset"]).name == f"tuned_{label}-ddqn.yaml"
+    capped = _study([*common, "env.max_episode_steps=50"])  # another task: its own study
+    assert capped["study"] == "FrozenLake-v1-cap50-ddqn"
     with pytest.raises(ConfigError) as err:
-        _study([*common, "env.max_episode_steps=50", "tune.trials=2"])
+        _study(
+            [*common, "env.max_episode_steps=50", "tune.trials=2", "tune.study=FrozenLake-v1-ddqn"]
+        )
     (line,) = str(err.value).splitlines()
     assert line.startswith(
         f"tune.study=FrozenLake-v1-ddqn: the study in sqlite:///{tmp_path / 'optuna.db'} "
@@ -215,7 +221,7 @@ def test_a_study_refuses_another_environment_under_its_name(tmp_path: Path) -> N
     assert line.endswith("tune.study=<name> (or tune.storage=<url>)")
     kwargs_study = [*common, *kwargs, "env.max_episode_steps=50", "tune.study=FrozenLake-v1-ddqn"]
     assert "+env.kwargs.is_slippery=False +env.kwargs.map_name=8x8" in _message(kwargs_study)
-    assert len(_runs(tmp_path, kind="trial")) == 2  # nothing of the refused runs
+    assert len(_runs(tmp_path, kind="trial")) == 3  # nothing of the refused runs
     again = _study([*common, "tune.trials=2"])  # the same environment continues the study
     assert again["counts"]["complete"] == 2
 

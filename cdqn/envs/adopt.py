@@ -10,7 +10,8 @@ threshold.  When ``env.id`` is not the id of the preset named ``env.name``
 (``env=cartpole env.id=Acrobot-v1``, or the default preset with ``env.id=<module>:<Id>``):
 
 * ``env.name`` becomes the id's label (:func:`cdqn.envs.make.env_label`: the id without
-  its module, ``/`` → ``-``, then ``.<key>-<value>`` per constructor argument ``env.kwargs``,
+  its module, ``/`` → ``-``, ``-cap<N>`` when ``env.max_episode_steps`` is not the cap of a
+  registration that has one, then ``.<key>-<value>`` per constructor argument ``env.kwargs``,
   keys sorted), so the run is named ``<label>-<controller>-s<seed>``, tagged ``env=<label>``
   and grouped under it by the analysis and the tuner;
 * ``env.obs_indices`` and ``env.normalize_scale`` (:data:`FEATURE_KEYS`: the preset's
@@ -221,9 +222,7 @@ def _take_registration(
     """Name, cap and threshold of ``env.id`` (registered as ``spec``) in place of
     ``preset``'s unless given; what changed."""
     cap, threshold = spec.max_episode_steps, spec.reward_threshold
-    label = env_label(str(env.id), _kwargs(env))
-    env.name = label
-    changed = [f"named {label}"]
+    changed: list[str] = []
     plain = OmegaConf.to_container(env, resolve=True)
     assert isinstance(plain, dict)
     for key in FEATURE_KEYS:  # indices and widths of the preset's observation, not this one's
@@ -234,6 +233,9 @@ def _take_registration(
     if env.max_episode_steps == preset.max_episode_steps and "env.max_episode_steps" not in given:
         env.max_episode_steps = cap
         changed.append(f"episode cap {cap} (its registration)")
+    other = cap is not None and env.max_episode_steps not in (None, cap)
+    env.name = env_label(str(env.id), _kwargs(env), env.max_episode_steps if other else None)
+    changed.insert(0, f"named {env.name}")
     if env.solve_threshold == preset.solve_threshold and "env.solve_threshold" not in given:
         env.solve_threshold = threshold
         changed.append(

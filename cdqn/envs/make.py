@@ -34,8 +34,9 @@ from cdqn.envs.wrappers import (
 )
 
 MAX_FLAT_INPUTS = 1024
-"""The most entries of a ``Box`` observation of another shape (or a ``MultiBinary``) that
-:func:`make_env` flattens into the network's input."""
+"""The most network inputs :func:`make_env` gives an observation: the entries of a ``Box``
+(flattened when of another shape, or a ``MultiBinary``), or the one-hot values of discrete
+ones (a ``Discrete(n)`` is ``n`` inputs)."""
 
 EXTRAS = {
     "box2d": 'pip install "gymnasium[box2d]"',
@@ -193,21 +194,24 @@ def make_env(cfg: EnvConfig) -> gym.Env:
     if not isinstance(env.action_space, Discrete):
         env.close()
         raise ConfigError(
-            f"env.id={cfg.id!r} has action space {env.action_space}; cdqn needs a Discrete one"
+            f"env.id={cfg.id!r}{_with_kwargs(cfg)} has action space {env.action_space}; "
+            "cdqn needs a Discrete one"
         )
     if env.action_space.start != 0:
         env = ActionStart(env)
-    if OneHot.encodes(env.observation_space):
+    raw = env.observation_space
+    if OneHot.encodes(raw):
         env = OneHot(env)
     elif flattens(env.observation_space, MAX_FLAT_INPUTS):
         env = FlattenObservation(env)
     space = env.observation_space
-    if not isinstance(space, Box) or len(space.shape) != 1:
+    if not isinstance(space, Box) or len(space.shape) != 1 or space.shape[0] > MAX_FLAT_INPUTS:
         env.close()
+        inputs = f" ({int(np.prod(space.shape))} inputs)" if isinstance(space, Box) else ""
         raise ConfigError(
-            f"env.id={cfg.id!r}: cdqn needs a Box observation of at most {MAX_FLAT_INPUTS} "
-            "entries (flattened), a MultiBinary one, or Discrete ones (Discrete, MultiDiscrete, "
-            f"a Tuple of them: one-hot); got {space}"
+            f"env.id={cfg.id!r}{_with_kwargs(cfg)}: cdqn's network takes at most "
+            f"{MAX_FLAT_INPUTS} inputs from a Box observation (flattened), a MultiBinary one, or "
+            f"discrete ones one-hot (Discrete, MultiDiscrete, a Tuple of them); got {raw}{inputs}"
         )
     if cfg.obs_indices is not None:
         bad = [i for i in cfg.obs_indices if not 0 <= i < space.shape[0]]
@@ -231,6 +235,11 @@ def make_env(cfg: EnvConfig) -> gym.Env:
     if cfg.rbf_centres is not None:
         env = _radial_features(env, cfg)
     return env
+
+
+def _with_kwargs(cfg: EnvConfig) -> str:
+    """`` with env.kwargs={...}`` when the constructor got arguments (they may be the cause)."""
+    return f" with env.kwargs={dict(cfg.kwargs)}" if cfg.kwargs else ""
 
 
 def _radial_features(env: gym.Env, cfg: EnvConfig) -> RadialFeatures:
