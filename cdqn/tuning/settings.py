@@ -114,6 +114,12 @@ class TuneSettings:
     design."""
     sampler_seed: int = 0
     """Seed of Optuna's TPE sampler."""
+    sampler_startup: int = 10
+    """Trials the TPE sampler draws at random (the warm start's among them) before it models
+    the trials so far (Optuna's ``n_startup_trials``)."""
+    sampler_multivariate: bool = False
+    """TPE models the dimensions jointly (Optuna's ``multivariate`` and ``group``, for the
+    dimensions that exist only under another's value) rather than one by one."""
     worker: int = 0
     """Index of this process among the study's parallel workers (``-m tune.worker=0,1``);
     worker 0 waits for the others' trials and writes the plots, preset and evaluation."""
@@ -186,7 +192,8 @@ def validate_tune(conf: TuneConfig) -> None:
                            ("eval_processes", t.eval_processes, 0),
                            ("max_rbf_features", t.max_rbf_features, 1),
                            ("pruner.interval", t.pruner.interval, 1),
-                           ("worker", t.worker, 0)):  # fmt: skip
+                           ("worker", t.worker, 0),
+                           ("sampler_startup", t.sampler_startup, 1)):  # fmt: skip
         if value < lo:
             errors.append(f"tune.{key}={value}: must be an integer >= {lo}")
     if not 0 <= t.explore_share <= 1:

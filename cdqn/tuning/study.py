@@ -16,6 +16,7 @@ import json
 import logging
 import math
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -233,9 +234,15 @@ class Study:
         # a restarted study continues the sampler's stream instead of repeating its start;
         # workers draw distinct streams, and the constant liar keeps them off each other's
         # running trials
-        study.sampler = optuna.samplers.TPESampler(
-            seed=t.sampler_seed + n_trials + WORKER_SEED_STRIDE * t.worker, constant_liar=True
-        )
+        with warnings.catch_warnings():  # multivariate and group are "experimental"
+            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+            study.sampler = optuna.samplers.TPESampler(
+                seed=t.sampler_seed + n_trials + WORKER_SEED_STRIDE * t.worker,
+                constant_liar=True,
+                n_startup_trials=t.sampler_startup,
+                multivariate=t.sampler_multivariate,
+                group=t.sampler_multivariate,
+            )
         log.info("study %s (%s on %s, %d episodes per member), worker %d (MLflow parent run "
                  "%s): %d of %d trials done", t.study, self.agent, self.conf.env.id,
                  self.episodes, t.worker, self.parent, done, t.trials)  # fmt: skip
