@@ -333,7 +333,7 @@ def _figure(
                    label=f"random policy ({score_text(chance['mean'])})")  # fmt: skip
     ax.set_xlabel("episode")
     ax.set_ylabel("MA100 return, mean ± std")
-    ax.set_title(f"{env.name}: tuned agents on fresh seeds")
+    ax.set_title(f"{env.name}: tuned agents on fresh seeds", loc="left", fontsize=10)
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     fig.tight_layout()
     fig.savefig(out, dpi=120)
