@@ -32,7 +32,7 @@ from cdqn.tuning.space import (
     log_horizon_of,
     sample,
 )
-from cdqn.tuning.study import Study, _with_controller
+from cdqn.tuning.study import Study, _sampler, _with_controller
 from tests.conftest import CONF_DIR
 from tests.helpers import run_cli
 
@@ -453,6 +453,22 @@ def test_cli_refuses_a_negative_worker_index(tmp_path: Path) -> None:
     assert proc.returncode == 2
     assert "tune.worker=-1: must be an integer >= 0" in proc.stderr
     assert not (tmp_path / "optuna.db").exists()
+
+
+def test_the_samplers_settings_reach_tpe_and_a_bad_one_is_refused(tmp_path: Path) -> None:
+    """``tune.sampler_startup`` and ``tune.sampler_multivariate`` become the TPE sampler's
+    random start and joint model; worker 1 continues another stream than worker 0."""
+    joint = _sampler(TuneSettings(sampler_startup=4, sampler_multivariate=True), 7)
+    apart = _sampler(TuneSettings(), 7)
+    assert (joint._n_startup_trials, joint._multivariate, joint._group) == (4, True, True)
+    assert (apart._n_startup_trials, apart._multivariate) == (10, False)
+    draws = [
+        _sampler(TuneSettings(worker=w), 7)._rng.rng.random() for w in (0, 0, 1)
+    ]  # fmt: skip
+    assert draws[0] == draws[1] != draws[2]
+    proc = run_cli("cdqn.tune", ["tune.sampler_startup=0"], tmp_path)
+    assert proc.returncode == 2
+    assert "tune.sampler_startup=0: must be an integer >= 1" in proc.stderr
 
 
 @pytest.mark.slow

@@ -191,8 +191,7 @@ def validate_tune(conf: TuneConfig) -> None:
                            ("recheck_seeds", t.recheck_seeds, 0),
                            ("eval_processes", t.eval_processes, 0),
                            ("max_rbf_features", t.max_rbf_features, 1),
-                           ("pruner.interval", t.pruner.interval, 1),
-                           ("worker", t.worker, 0),
+                           ("pruner.interval", t.pruner.interval, 1), ("worker", t.worker, 0),
                            ("sampler_startup", t.sampler_startup, 1)):  # fmt: skip
         if value < lo:
             errors.append(f"tune.{key}={value}: must be an integer >= {lo}")

@@ -43,6 +43,7 @@ from cdqn.tuning.presets import specification_of, write_preset
 from cdqn.tuning.report import log_design, plot_study
 from cdqn.tuning.settings import (
     TuneConfig,
+    TuneSettings,
     episode_budget,
     trial_cap,
     validate_tune,
@@ -234,15 +235,7 @@ class Study:
         # a restarted study continues the sampler's stream instead of repeating its start;
         # workers draw distinct streams, and the constant liar keeps them off each other's
         # running trials
-        with warnings.catch_warnings():  # multivariate and group are "experimental"
-            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-            study.sampler = optuna.samplers.TPESampler(
-                seed=t.sampler_seed + n_trials + WORKER_SEED_STRIDE * t.worker,
-                constant_liar=True,
-                n_startup_trials=t.sampler_startup,
-                multivariate=t.sampler_multivariate,
-                group=t.sampler_multivariate,
-            )
+        study.sampler = _sampler(t, n_trials)
         log.info("study %s (%s on %s, %d episodes per member), worker %d (MLflow parent run "
                  "%s): %d of %d trials done", t.study, self.agent, self.conf.env.id,
                  self.episodes, t.worker, self.parent, done, t.trials)  # fmt: skip
@@ -529,3 +522,19 @@ def _with_controller(cfg: DictConfig, name: str) -> DictConfig:
             if weights is not None and key in weights:
                 out.env[key] = f"${{weights.{name}.{key}}}"
     return out
+
+
+def _sampler(t: TuneSettings, n_trials: int) -> Any:
+    """Worker ``t.worker``'s TPE sampler, its stream continued after ``n_trials`` trials
+    (``tune.sampler_seed``, ``tune.sampler_startup``, ``tune.sampler_multivariate``)."""
+    import optuna
+
+    with warnings.catch_warnings():  # multivariate and group are "experimental"
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        return optuna.samplers.TPESampler(
+            seed=t.sampler_seed + n_trials + WORKER_SEED_STRIDE * t.worker,
+            constant_liar=True,
+            n_startup_trials=t.sampler_startup,
+            multivariate=t.sampler_multivariate,
+            group=t.sampler_multivariate,
+        )
