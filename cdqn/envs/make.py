@@ -202,12 +202,12 @@ def make_env(cfg: EnvConfig) -> gym.Env:
     raw = env.observation_space
     if OneHot.encodes(raw):
         env = OneHot(env)
-    elif flattens(env.observation_space, MAX_FLAT_INPUTS):
+    elif flattens(raw, MAX_FLAT_INPUTS):  # an image is refused below, not copied flat
         env = FlattenObservation(env)
     space = env.observation_space
     if not isinstance(space, Box) or len(space.shape) != 1 or space.shape[0] > MAX_FLAT_INPUTS:
         env.close()
-        inputs = f" ({int(np.prod(space.shape))} inputs)" if isinstance(space, Box) else ""
+        inputs = f" ({gym.spaces.flatdim(space)} inputs)" if isinstance(space, Box) else ""
         raise ConfigError(
             f"env.id={cfg.id!r}{_with_kwargs(cfg)}: cdqn's network takes at most "
             f"{MAX_FLAT_INPUTS} inputs from a Box observation (flattened), a MultiBinary one, or "

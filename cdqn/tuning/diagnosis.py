@@ -32,9 +32,6 @@ from cdqn.config import BOXED_CONTROLLERS
 from cdqn.records import BOX_SERIES, SERIES_PREFIX, Metric, Tag
 from cdqn.tuning.objective import WINDOW
 
-TAIL = WINDOW
-"""Episodes at the end of a run that the per-seed shares average over (the final score's)."""
-
 LISTED = 5
 """Seeds below the bar named one by one; more are given as the lowest … the highest."""
 
@@ -58,7 +55,7 @@ def seed_record(tracker: Any, member: Any, final: float, controller: Any) -> dic
     replayed = sum(tracker.history(run, Metric.REPLAY_UPDATES))
     record["learned_per_step"] = 1.0 + replayed / steps if steps else math.nan
     for key in BOX_SHARES:
-        tail = tracker.history(run, key)[-TAIL:]
+        tail = tracker.history(run, key)[-WINDOW:]  # the final score's episodes
         if tail:
             record[key] = float(np.mean(tail))
     return record
@@ -122,7 +119,7 @@ def shortfall_text(agent: str, mine: dict, base: dict, bar: float, places: int) 
     seeds += f"; median final score {agent} {medians[0]}, Double DQN {medians[1]}"
     lines = [
         f"\nWhere {agent} falls short (the same fresh seeds; shares over each seed's last "
-        f"{TAIL} episodes):",
+        f"{WINDOW} episodes):",
         seeds,
         f"- environment steps per seed: {agent} {_mean(ours, 'steps'):,.0f}, Double DQN "
         f"{_mean(theirs, 'steps'):,.0f}; transitions learned from per step: {agent} "
