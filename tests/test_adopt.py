@@ -318,9 +318,10 @@ def test_a_cap_or_threshold_given_on_the_command_line_stays_at_the_presets_value
                   "env.max_episode_steps=100"]):  # fmt: skip
         with command_line(other):
             assert adopt(compose_config(other)).conf.env.name == "Acrobot-v1-cap100"
-    with command_line(["env.id=CliffWalking-v1", "env.max_episode_steps=200"]):
-        name = adopt(compose_config(["env.id=CliffWalking-v1", "env.max_episode_steps=200"]))
-    assert name.conf.env.name == "CliffWalking-v1"  # registered without a cap: the given one
+    for cap in (200, 100):  # registered without a cap: each given one is its own task
+        no_cap = ["env.id=CliffWalking-v1", f"env.max_episode_steps={cap}"]
+        with command_line(no_cap):
+            assert adopt(compose_config(no_cap)).conf.env.name == f"CliffWalking-v1-cap{cap}"
     env = adopt(compose_config(given)).conf.env  # composed in code: the preset's values
     assert (env.max_episode_steps, env.solve_threshold) == (100, 0.7)
 

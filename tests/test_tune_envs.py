@@ -142,8 +142,9 @@ def test_a_tuple_observation_environment_without_cap_or_threshold_is_tuned_as_it
 ) -> None:
     """Blackjack-v1 (``Tuple`` of ``Discrete``: one-hot, 45 inputs; no registered cap or
     reward threshold) tuned for Double DQN: the study, its runs and its preset are
-    Blackjack's, with the cap given and no solve threshold; the preset records the search
-    space the observation allowed (no radial features over 45 inputs) and trains again."""
+    Blackjack's at the cap given (``Blackjack-v1-cap20``), with no solve threshold; the
+    preset records the search space the observation allowed (no radial features over 45
+    inputs) and trains again."""
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     _store(uri, "cdqn-tune", tmp_path)
     summary = _study([
@@ -153,21 +154,22 @@ def test_a_tuple_observation_environment_without_cap_or_threshold_is_tuned_as_it
         "tune.seeds=2", "tune.episodes=6", "tune.eval_seeds=2", "tune.pruner.kind=none",
         "tune.eval_processes=1",
     ])  # fmt: skip
-    assert summary["study"] == "Blackjack-v1-ddqn" and summary["counts"]["complete"] == 1
+    assert summary["study"] == "Blackjack-v1-cap20-ddqn" and summary["counts"]["complete"] == 1
     assert "no solve threshold" in summary["comparison"]["table"]
     (parent,) = _runs(tmp_path, kind="tune")
-    assert (parent.data.tags["env"], parent.data.tags["env_id"]) == ("Blackjack-v1", "Blackjack-v1")
+    tags = parent.data.tags
+    assert (tags["env"], tags["env_id"]) == ("Blackjack-v1-cap20", "Blackjack-v1")
     assert parent.data.params["env.max_episode_steps"] == "20"
     assert parent.data.params["env.solve_threshold"] == "None"
     members = [r for r in _runs(tmp_path) if "population" in r.data.tags]
     assert len(members) == 4  # the trial's two and the evaluation's two
-    assert {r.data.tags["env"] for r in members} == {"Blackjack-v1"}
-    assert all(r.info.run_name.startswith("Blackjack-v1-ddqn-") for r in members)
+    assert {r.data.tags["env"] for r in members} == {"Blackjack-v1-cap20"}
+    assert all(r.info.run_name.startswith("Blackjack-v1-cap20-ddqn-") for r in members)
 
     preset = Path(summary["preset"])
-    assert preset.name == "tuned_Blackjack-v1-ddqn.yaml"
+    assert preset.name == "tuned_Blackjack-v1-cap20-ddqn.yaml"
     tuned = OmegaConf.load(preset)
-    assert (tuned.env.id, tuned.env.name) == ("Blackjack-v1", "Blackjack-v1")
+    assert (tuned.env.id, tuned.env.name) == ("Blackjack-v1", "Blackjack-v1-cap20")
     assert tuned.env.max_episode_steps == 20 and tuned.env.solve_threshold is None
     assert "rbf" not in tuned.extra.tuned.space and "normalize" in tuned.extra.tuned.space
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
@@ -180,7 +182,7 @@ def test_a_tuple_observation_environment_without_cap_or_threshold_is_tuned_as_it
     assert adopted.change is None  # the preset's environment is Blackjack's already
     result = run(adopted.cfg, progress=False)
     trained = MlflowClient(f"sqlite:///{tmp_path / 'train.db'}").get_run(result.run_id)
-    assert result.status == "FINISHED" and trained.data.tags["env"] == "Blackjack-v1"
+    assert result.status == "FINISHED" and trained.data.tags["env"] == "Blackjack-v1-cap20"
     assert trained.data.params["env.max_episode_steps"] == "20"
 
 

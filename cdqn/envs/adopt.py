@@ -10,10 +10,11 @@ threshold.  When ``env.id`` is not the id of the preset named ``env.name``
 (``env=cartpole env.id=Acrobot-v1``, or the default preset with ``env.id=<module>:<Id>``):
 
 * ``env.name`` becomes the id's label (:func:`cdqn.envs.make.env_label`: the id without
-  its module, ``/`` → ``-``, ``-cap<N>`` when ``env.max_episode_steps`` is not the cap of a
-  registration that has one, then ``.<key>-<value>`` per constructor argument ``env.kwargs``,
-  keys sorted), so the run is named ``<label>-<controller>-s<seed>``, tagged ``env=<label>``
-  and grouped under it by the analysis and the tuner;
+  its module, ``/`` → ``-``, ``-cap<N>`` when ``env.max_episode_steps`` is not the cap of its
+  registration (always for an id registered without one), then ``.<key>-<value>`` per
+  constructor argument ``env.kwargs``, keys sorted), so the run is named
+  ``<label>-<controller>-s<seed>``, tagged ``env=<label>`` and grouped under it by the
+  analysis and the tuner;
 * ``env.obs_indices`` and ``env.normalize_scale`` (:data:`FEATURE_KEYS`: the preset's
   features by index) become null unless the command line gives them;
 * ``env.max_episode_steps`` and ``env.solve_threshold`` come from the id's registration
@@ -233,7 +234,7 @@ def _take_registration(
     if env.max_episode_steps == preset.max_episode_steps and "env.max_episode_steps" not in given:
         env.max_episode_steps = cap
         changed.append(f"episode cap {cap} (its registration)")
-    other = cap is not None and env.max_episode_steps not in (None, cap)
+    other = env.max_episode_steps not in (None, cap)  # always for ids registered without one
     env.name = env_label(str(env.id), _kwargs(env), env.max_episode_steps if other else None)
     changed.insert(0, f"named {env.name}")
     if env.solve_threshold == preset.solve_threshold and "env.solve_threshold" not in given:
