@@ -1,6 +1,6 @@
 """Double DQN's compiled minibatch step (:mod:`cdqn.ddqn_kernels`): equal to torch autograd
-in either dtype and for any number of inputs and actions; its arithmetic as the benchmark
-counts it."""
+in either dtype and for any number of inputs and actions, written out or through BLAS; its
+arithmetic as the benchmark counts it."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import torch
 from cdqn.agents.ddqn import DDQNAgent
 from cdqn.bench import agent_products
 from cdqn.config import Config, ControllerConfig, TrainConfig
-from cdqn.ddqn_kernels import minibatch_macs
+from cdqn.ddqn_kernels import DENSE_INPUTS, minibatch_macs
 from cdqn.network import NetworkSpec, QNetwork
 
 TOLERANCE = {"float64": (1e-9, 1e-10, 1e-12), "float32": (2e-4, 2e-4, 2e-6)}
@@ -41,8 +41,9 @@ def fast_and_autograd_agents(
 
 @pytest.mark.parametrize(
     ("dtype", "n_obs", "n_actions"),
-    [("float64", 4, 2), ("float32", 4, 2), ("float64", 6, 3), ("float32", 3, 1)],
-)
+    [("float64", 4, 2), ("float32", 4, 2), ("float64", 6, 3), ("float32", 3, 1),
+     ("float64", DENSE_INPUTS, 3), ("float32", 36, 3)],  # the last two: products through BLAS
+)  # fmt: skip
 def test_minibatch_step_equals_autograd(dtype: str, n_obs: int, n_actions: int) -> None:
     """Double DQN with the fast path and with torch autograd take the same steps (losses,
     networks after 60 updates with minibatch steps and target copies), in the network's
