@@ -128,6 +128,17 @@ as with one-hot states; Mountain car's radial features (none exactly zero) stay 
 (written out below :data:`DENSE_INPUTS` inputs, :func:`dense_step` from it)."""
 
 
+DENSE_INPUTS = 8
+"""From this many network inputs a dense minibatch goes through :func:`dense_step`.  Measured
+on one core (width 2500, 32 samples, float64, CPU µs per minibatch step, written out /
+BLAS): 4 inputs 188 / 202, 6: 278 / 228, 8: 363 / 274, 16: 767 / 460, 36: 2 573 / 684."""
+
+DENSE_COST = 1.4
+"""The route through :func:`dense_step` at the cost :func:`sparse_members` gives the written-out
+kernel, times this: measured on one core with one-hot minibatches, 408 µs against the loop's
+325 at 16 inputs (1.4 times the model), 804 against 329 at 48 (1.1 times)."""
+
+
 @njit(cache=True)
 def sparse_members(buf_obs, buf_next, idx, members, n_actions, sparse):
     """Per member ``k`` of ``members``: whether :func:`sparse_step` is the cheaper route for
@@ -135,7 +146,8 @@ def sparse_members(buf_obs, buf_next, idx, members, n_actions, sparse):
     it is for.  Per sample and hidden unit, the unrolled kernel does ``4n + 5m``
     multiply-adds (:func:`minibatch_macs`), the loop ``4 nnz + 5m`` with ``nnz`` the mean
     number of nonzero inputs of the ``s_i`` and ``s'_i``, each :data:`SPARSE_COST` times as
-    dear."""
+    dear; from :data:`DENSE_INPUTS` inputs the dense route costs :data:`DENSE_COST` times the
+    unrolled kernel's count."""
     count = 0
     batch, n_obs = idx.shape[1], buf_obs.shape[2]
     for k in range(members.shape[0]):
@@ -145,7 +157,10 @@ def sparse_members(buf_obs, buf_next, idx, members, n_actions, sparse):
                 for c in range(n_obs):
                     nnz += (buf_obs[k, j, c] != 0.0) + (buf_next[k, j, c] != 0.0)
         loop = SPARSE_COST * (4 * nnz + 10 * batch * n_actions)  # × 2 batch, as unrolled
-        sparse[k] = members[k] and loop <= 2 * batch * (4 * n_obs + 5 * n_actions)
+        dense = 2 * batch * (4 * n_obs + 5 * n_actions)
+        if n_obs >= DENSE_INPUTS:
+            dense *= DENSE_COST
+        sparse[k] = members[k] and loop <= dense
         count += sparse[k]
     return count
 
@@ -388,12 +403,6 @@ def dense_learn(online, target, replay, idx, members, hyper, last_loss):
         if members[k]:
             last_loss[k] = dense_step(member_params(net, k), member_params(tgt, k),
                                       member_replay(buf, k), idx[k], hyper)  # fmt: skip
-
-
-DENSE_INPUTS = 8
-"""From this many network inputs a dense minibatch goes through :func:`dense_step`.  Measured
-on one core (width 2500, 32 samples, float64, CPU µs per minibatch step, written out /
-BLAS): 4 inputs 188 / 202, 6: 278 / 228, 8: 363 / 274, 16: 767 / 460, 36: 2 573 / 684."""
 
 
 @functools.cache

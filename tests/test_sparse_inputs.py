@@ -241,3 +241,19 @@ def test_benchmark_counts_the_nonzero_inputs(env_id: str, nonzero: int) -> None:
     per ``Discrete`` part of a one-hot observation, every input of a dense one."""
     env = make_env(EnvConfig(id=env_id, max_episode_steps=20))
     assert nonzero_inputs(env) == nonzero
+
+
+@pytest.mark.parametrize(
+    ("n", "kind", "expected"),
+    [(16, "one-hot", True), (48, "one-hot", True), (36, "dense", False), (8, "dense", False)],
+)
+def test_the_route_follows_the_minibatchs_zeros(n: int, kind: str, expected: bool) -> None:
+    """One-hot minibatches take the loop over nonzeros (FrozenLake's 16 inputs too, where the
+    products through BLAS would be the dearer route); dense ones, such as radial features,
+    do not."""
+    gen = np.random.default_rng(3)
+    obs = np.stack([np.stack([_input(kind, n, gen) for _ in range(64)])])
+    nxt = np.stack([np.stack([_input(kind, n, gen) for _ in range(64)])])
+    sparse = np.empty(1, dtype=np.bool_)
+    sparse_members(obs, nxt, gen.integers(64, size=(1, 32)), np.ones(1, np.bool_), 4, sparse)
+    assert bool(sparse[0]) is expected
