@@ -7,7 +7,6 @@ import dataclasses
 import json
 import math
 import re
-from datetime import datetime, timedelta
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +19,6 @@ from omegaconf import DictConfig, OmegaConf
 from cdqn.control.target import stable_over_box
 from cdqn.training.batching import batchable
 from cdqn.training.store import place_migrated
-from cdqn.tuning.clock import EvaluationSize, StudyClock
 from cdqn.tuning.objective import area, ma100, padded
 from cdqn.tuning.pruner import EpisodeMedianPruner
 from cdqn.tuning.report import summary_text
@@ -604,41 +602,6 @@ def test_the_rechecked_trial_with_the_best_final_score_over_its_seeds_is_chosen(
     assert sorted(rows) == [0, 1, 2]  # the three best by J; trial 3 is not rechecked
     assert rows[0]["all"] > rows[1]["all"]  # trial 0 has the best J over its seeds
     assert rows[1]["final_all"] == pytest.approx((3 * 499.0 + 4 * 482.0) / 7)
-
-
-def test_a_finalist_too_slow_to_recheck_is_passed_over_for_faster_ones(
-    tmp_path: Path, caplog: pytest.LogCaptureFixture
-) -> None:
-    """The best trial by J trains so slowly that its recheck and an evaluation at its pace
-    would end past ``tune.time_limit``: it is passed over, and the choice is made among the
-    finalists after it that were rechecked (here from the study), not the best by J."""
-    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
-        cfg = compose("tune", overrides=[*_overrides(tmp_path, "slow", 1)[:5],
-                                         "controller=ddqn", "tune.recheck_trials=3"])  # fmt: skip
-    chooser = Study(cfg)
-    study = optuna.create_study(direction="maximize")
-    size = EvaluationSize(10, 2, chooser.episodes, 1, cfg.tune.seeds, None, 4)
-    chooser.clock = StudyClock(study, 1800.0, size, joined=False)  # as the study sets it
-    full = cfg.tune.seeds * chooser.episodes  # the member-episodes of a trial
-    start = datetime(2026, 1, 1)
-    # (J, final score, seconds the trial took); trials 1 and 2 rechecked, trial 0 not
-    for number, (j, final, seconds) in enumerate([(340.0, 500.0, 100.0 * full),
-                                                  (320.0, 400.0, 0.01 * full),
-                                                  (300.0, 450.0, 0.01 * full)]):  # fmt: skip
-        study.add_trial(optuna.trial.FrozenTrial(
-            number=number, state=optuna.trial.TrialState.COMPLETE, value=j,
-            datetime_start=start, datetime_complete=start + timedelta(seconds=seconds),
-            params={}, distributions={}, user_attrs={"final_score": final,
-                                                     "member_episodes": full},
-            system_attrs={}, intermediate_values={}, trial_id=number))  # fmt: skip
-    for number, final_re in [(1, 400.0), (2, 450.0)]:
-        study.set_user_attr(f"recheck_{number}_seeds_200_4",
-                            {"objective": 300.0, "final_score": final_re})  # fmt: skip
-    summary: dict = {}
-    with caplog.at_level("INFO", logger="cdqn.tune"):
-        assert chooser.choose(study, summary).number == 2  # not trial 0, the best by J
-    assert [row["trial"] for row in summary["recheck"]] == [1, 2]
-    assert "no time left for the recheck of trial 0" in caplog.text
 
 
 def test_a_continued_study_that_chooses_another_trial_records_it(tmp_path: Path) -> None:

@@ -101,25 +101,6 @@ def test_a_recheck_is_timed_at_its_finalists_pace_not_the_slowest_trials() -> No
     assert not size.time_for_recheck(study, elapsed + 2.0, 1000.0, [finalist])
 
 
-def test_a_recheck_at_its_own_pace_and_the_evaluation_at_the_slowest_it_may_choose() -> None:
-    """The recheck of a fast finalist is timed at its pace; the evaluation at the slowest pace
-    of the finalists that can still be chosen (those rechecked and this one), not at that of
-    a slower finalist passed over."""
-    study = optuna.create_study()
-    size = EvaluationSize(10, 2, 200, 1, recheck_seeds=4)
-    fast = _trial(0, 30.0, 600, TrialState.COMPLETE)
-    slow = _trial(1, 60.0, 600, TrialState.COMPLETE)
-    study.add_trial(fast)
-    study.add_trial(slow)  # τ 0.1 s against 0.05 s
-    need = size.recheck_seconds(0.05) + size.seconds(0.05)
-    assert size.time_for_recheck(study, 1000.0 - need - 1.0, 1000.0, [], recheck=fast)
-    assert not size.time_for_recheck(study, 1000.0 - need - 1.0, 1000.0, [fast, slow])
-    # once the slow one is rechecked, the evaluation may train it
-    assert not size.time_for_recheck(study, 1000.0 - need - 1.0, 1000.0, [slow], recheck=fast)
-    with_slow = size.recheck_seconds(0.05) + size.seconds(0.1)
-    assert size.time_for_recheck(study, 1000.0 - with_slow - 1.0, 1000.0, [slow], recheck=fast)
-
-
 def test_before_a_trial_completes_the_evaluation_is_the_most_a_complete_one_can_cost() -> None:
     pruned = [_trial(0, 40.0, 100, TrialState.PRUNED), _trial(1, 10.0, 300, TrialState.PRUNED)]
     capped = EvaluationSize(seeds=10, processes=2, episodes=200, runs=1, members=3,

@@ -260,37 +260,22 @@ class EvaluationSize:
         return tau * self.per_process(self.recheck_seeds) * self.episodes + START_ALLOWANCE
 
     def time_for_recheck(
-        self,
-        study: Any,
-        elapsed: float,
-        limit: float | None,
-        finalists: Sequence[Any] = (),
-        recheck: Any = None,
+        self, study: Any, elapsed: float, limit: float | None, finalists: Sequence[Any] = ()
     ) -> bool:
-        """Whether the recheck of the finalist ``recheck`` and then the evaluation end within
-        ``limit`` (rechecks use time the trials left; they are never reserved).  The recheck
-        trains ``recheck``, so it is timed at that trial's own pace; the evaluation trains one
-        of the ``finalists`` (those that can still be chosen: the ones rechecked so far and
-        ``recheck``), so it is timed at the slowest of their paces.  Without ``recheck``, both
-        at the slowest finalist's pace; a trial that shows no pace counts at the pace of
-        :func:`estimate`."""
+        """Whether one more recheck and then the evaluation end within ``limit`` (rechecks use
+        time the trials left; they are never reserved).  Both train one of the ``finalists``,
+        so they are timed at the slowest finalist's own pace; without one that shows a pace,
+        at the pace of :func:`estimate`."""
         if limit is None:
             return True
-        chosen_from = [*finalists, recheck] if recheck is not None else list(finalists)
-        tau_recheck = self.slowest_pace(study, [recheck] if recheck is not None else chosen_from)
-        tau_eval = self.slowest_pace(study, chosen_from)
-        if tau_recheck is None or tau_eval is None:
-            return False
-        return elapsed + self.recheck_seconds(tau_recheck) + self.seconds(tau_eval) <= limit
-
-    def slowest_pace(self, study: Any, trials: Sequence[Any]) -> float | None:
-        """The largest seconds per member-episode of the complete ``trials`` that show their
-        pace; where none does, the pace of :func:`estimate` (None before any trial trained)."""
-        own = complete_paces(trials, max(1, self.members) * self.episodes)
+        own = complete_paces(finalists, max(1, self.members) * self.episodes)
         if own:
-            return max(own)
-        est = estimate(study.get_trials(deepcopy=False), self)
-        return None if est is None else est.per_member_episode
+            tau = max(own)
+        elif (est := estimate(study.get_trials(deepcopy=False), self)) is not None:
+            tau = est.per_member_episode
+        else:
+            return False
+        return elapsed + self.recheck_seconds(tau) + self.seconds(tau) <= limit
 
 
 def complete_paces(trials: Sequence[Any], full: int) -> list[float]:

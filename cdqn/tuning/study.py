@@ -347,11 +347,8 @@ class Study:
         episode, J the mean area, :func:`cdqn.tuning.objective.area`; a recheck without a
         score ranks last).  Each recheck is an MLflow child run (``kind=recheck``) and its
         scores are kept in the study, so a resumed close does not train it again.  A recheck
-        starts only when it, at its trial's pace, and the evaluation, at the slowest pace of
-        the finalists that can still be chosen, fit ``tune.time_limit``
-        (:meth:`cdqn.tuning.clock.EvaluationSize.time_for_recheck`); a finalist that does not
-        fit is passed over (it is not chosen, so the evaluation's time holds), and a faster
-        one after it may still be rechecked.  With no trial rechecked, the best by J."""
+        starts only when it and the evaluation still fit ``tune.time_limit``
+        (:mod:`cdqn.tuning.clock`).  With fewer than two trials rechecked, the best by J."""
         from optuna.trial import TrialState
 
         t = self.conf.tune
@@ -359,26 +356,24 @@ class Study:
         finalists = sorted(done, key=lambda tr: tr.value, reverse=True)[: t.recheck_trials]
         if len(finalists) < 2 or t.recheck_seeds < 1:
             return study.best_trial
-        rows: list[dict[str, Any]] = []
-        rechecked: list[Any] = []  # the finalists that can still be chosen
+        rows = []
         for tr in finalists:
             key = f"recheck_{tr.number}_seeds_{t.recheck_seed}_{t.recheck_seeds}"
             scores = study.user_attrs.get(key)
             if not isinstance(scores, dict):  # not rechecked yet
                 if not self.clock.size.time_for_recheck(
-                    study, self.clock.elapsed(), self.clock.aim, rechecked, recheck=tr
+                    study, self.clock.elapsed(), self.clock.aim, finalists
                 ):
-                    log.info("no time left for the recheck of trial %d at its pace "
-                             "(tune.time_limit)", tr.number)  # fmt: skip
-                    continue  # a faster finalist may still fit
+                    log.info("no time left for the recheck of trial %d (tune.time_limit)",
+                             tr.number)  # fmt: skip
+                    break
                 cfg = self.specified(tr.params, t.recheck_seed, t.recheck_seeds)
                 out = evaluate(self, cfg, f"recheck-trial-{tr.number}", kind="recheck")
                 scores = {"objective": out["objective"], "final_score": out["final_score"]}
                 study.set_user_attr(key, scores)
             rows.append(self._recheck_row(tr, scores))
-            rechecked.append(tr)
         summary["recheck"] = rows
-        if not rows:  # nothing rechecked: the best by J
+        if len(rows) < 2:  # nothing to choose between
             return study.best_trial
         chosen = max(rows, key=lambda row: (row["final_all"], row["all"]))
         return next(tr for tr in finalists if tr.number == chosen["trial"])
