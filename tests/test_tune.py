@@ -901,8 +901,9 @@ def test_both_agents_tuned_alike_compared_and_their_presets_reproduce_the_settin
             assert f"NTK box (measured on {measured}):" in summary["design_report"]
 
 
-def test_the_pruner_waits_a_quarter_of_the_episodes_by_default() -> None:
+def test_the_pruner_waits_half_the_episodes_by_default() -> None:
     assert warmup(PrunerConfig(), 600) == 300
+    assert warmup(PrunerConfig(), 160) == 80
     assert warmup(PrunerConfig(), 100) == 50
     assert warmup(PrunerConfig(warmup_episodes=7), 600) == 7
 
