@@ -150,6 +150,7 @@ def sparse_members(buf_obs, buf_next, idx, members, n_actions, sparse):
     unrolled kernel's count."""
     count = 0
     batch, n_obs = idx.shape[1], buf_obs.shape[2]
+    dense = 2 * batch * (4 * n_obs + 5 * n_actions) * (DENSE_COST if n_obs >= DENSE_INPUTS else 1.0)
     for k in range(members.shape[0]):
         nnz = 0
         if members[k]:
@@ -157,9 +158,6 @@ def sparse_members(buf_obs, buf_next, idx, members, n_actions, sparse):
                 for c in range(n_obs):
                     nnz += (buf_obs[k, j, c] != 0.0) + (buf_next[k, j, c] != 0.0)
         loop = SPARSE_COST * (4 * nnz + 10 * batch * n_actions)  # × 2 batch, as unrolled
-        dense = 2 * batch * (4 * n_obs + 5 * n_actions)
-        if n_obs >= DENSE_INPUTS:
-            dense *= DENSE_COST
         sparse[k] = members[k] and loop <= dense
         count += sparse[k]
     return count
