@@ -14,7 +14,7 @@ from cdqn.cli import check_overrides
 from cdqn.records import Tag
 from cdqn.tuning.presets import specification_of
 from cdqn.tuning.settings import ParamSpec
-from cdqn.tuning.space import fitted_specification
+from cdqn.tuning.space import fitted_specification, with_each_input_map
 from tests.test_tune import _overrides, _runs, _study
 
 SPACE = {
@@ -61,6 +61,17 @@ def test_a_specification_is_fitted_to_the_values_this_space_offers() -> None:
     assert "gamma_eff" not in fitted_specification(SPACE, found, as_discount)
     assert fitted_specification(SPACE, {"rbf": None}, SEARCHED) == {"rbf": None}
     assert "schedule" not in fitted_specification(SPACE, {"schedule": "step"}, SEARCHED)
+
+
+def test_a_warm_start_is_tried_on_each_observation_map_offered() -> None:
+    """A preset's specification, then the same with each other [−1, 1]-map choice; none
+    where the map is left to the sampler or only one map is offered."""
+    space = SPACE | {"inputs": ParamSpec(path="env.normalize", choices=[False, True])}
+    found = {"inputs": True, "schedule": "episode", "per_episode": 1e-3}
+    assert with_each_input_map(space, found) == [found | {"inputs": False}]
+    assert with_each_input_map(space, {"schedule": "episode"}) == []
+    one = space | {"inputs": ParamSpec(path="env.normalize", choices=[False])}
+    assert with_each_input_map(one, found | {"inputs": False}) == []
 
 
 def test_every_shipped_preset_holds_a_specification_and_its_space() -> None:

@@ -236,6 +236,25 @@ def fitted_specification(
     return out
 
 
+def with_each_input_map(
+    space: dict[str, ParamSpec], params: dict[str, Any]
+) -> list[dict[str, Any]]:
+    """``params`` with each other choice of the [−1, 1] map (``env.normalize``) that ``space``
+    offers, for a warm start to try a preset's specification on each observation map.
+
+    The map is what transfers least between environments: it changes the NTK box the design
+    is certified on (one-hot CliffWalking-v1 raw: Θ1 ≈ 19, Θ2/Θ1 ∈ [0.585, 1]; mapped:
+    Θ1 ≈ 430, Θ2/Θ1 ∈ [0.89, 1], the states nearly one input), and the same specification
+    learns under one map and not the other (docs/research/tuning.md).  Empty where
+    ``params`` leaves the map to the sampler or the space offers one choice."""
+    out: list[dict[str, Any]] = []
+    for name, p in space.items():
+        if p.path != NORMALIZE_PATH or p.choices is None or name not in params:
+            continue
+        out += [params | {name: c} for c in p.choices if c != params[name]]
+    return out
+
+
 def _is_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 

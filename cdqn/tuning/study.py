@@ -57,6 +57,7 @@ from cdqn.tuning.space import (
     fit_to_budget,
     fit_to_observation,
     fitted_specification,
+    with_each_input_map,
 )
 from cdqn.tuning.storage import WORKER_SEED_STRIDE, StudyLock, open_storage
 from cdqn.tuning.tracker import Tracker
@@ -263,19 +264,24 @@ class Study:
     def _warm_start(self, study: Any) -> None:
         """Queue a new study's first trials: the specifications of the ``tune.warm_start``
         presets (what made those environments learn), fitted to this study's space
-        (:func:`cdqn.tuning.space.fitted_specification`); a specification the fitting makes
-        equal to an earlier one is queued once, and no more than ``tune.trials``.  They count
-        as trials of the budget, are sampled where they leave a dimension out, and are
-        certified and pruned like any."""
+        (:func:`cdqn.tuning.space.fitted_specification`), then each of them on the other
+        observation maps the space offers (:func:`cdqn.tuning.space.with_each_input_map`).
+        A specification equal to an earlier one is queued once, and no more than
+        ``tune.trials``.  They count as trials of the budget, are sampled where they leave a
+        dimension out, and are certified and pruned like any."""
         t = self.conf.tune
+        fitted = [
+            (name, fitted_specification(self.space, *specification_of(name, t.preset_dir)))
+            for name in (warm_start_preset(env_name, self.agent) for env_name in t.warm_start)
+        ]
+        crossed = [(name, other) for name, params in fitted
+                   for other in with_each_input_map(self.space, params)]  # fmt: skip
         queued: list[dict[str, Any]] = []
-        for env_name in t.warm_start:
-            name = warm_start_preset(env_name, self.agent)
-            params = fitted_specification(self.space, *specification_of(name, t.preset_dir))
+        for name, params in fitted + crossed:
             if params in queued:
                 continue
             if len(queued) == t.trials:
-                log.info("tune.trials=%d: %s not queued", t.trials, name)
+                log.info("tune.trials=%d: %s %s not queued", t.trials, name, json.dumps(params))
                 continue
             queued.append(params)
             study.enqueue_trial(params, user_attrs={Tag.START_FROM: name})
