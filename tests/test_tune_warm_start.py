@@ -120,3 +120,24 @@ def test_a_new_study_starts_from_the_presets_specifications(tmp_path: Path) -> N
     _study(_overrides(tmp_path, "third", 1, warm))  # one trial: one preset queued, none left
     (only,) = optuna.load_study(study_name="third", storage=storage).trials
     assert only.user_attrs[Tag.START_FROM] == "tuned_first-hinf_f" and only.state.is_finished()
+
+
+@pytest.mark.slow
+def test_a_warm_start_trains_on_each_observation_map(tmp_path: Path) -> None:
+    """With the [−1, 1] map searched, a study queues the shipped CartPole preset's
+    specification on its own map (raw) and then on the other, both tagged with the preset."""
+    overrides = [
+        o
+        for o in _overrides(
+            tmp_path, "crossed", 2, ["tune.warm_start=[cartpole]", "tune.eval_seeds=0"]
+        )  # fmt: skip
+        if o != "~tune.space.normalize"
+    ]
+    _study(overrides)
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    trials = optuna.load_study(study_name="crossed", storage=storage).trials
+    assert [t.params["normalize"] for t in trials] == [False, True]
+    assert {t.user_attrs[Tag.START_FROM] for t in trials} == {"tuned_cartpole-hinf_f"}
+    sampled = {"normalize", "gamma_eff"}  # the tests' γ_eff is a discount: left to the sampler
+    kept = [{k: v for k, v in t.params.items() if k not in sampled} for t in trials]
+    assert kept[0] == kept[1] and kept[0]
