@@ -29,6 +29,7 @@ from cdqn.tuning.space import (
     fit_to_box,
     fit_to_budget,
     fit_to_observation,
+    highest_floor,
     log_horizon_of,
     sample,
 )
@@ -58,6 +59,7 @@ ONLY_TARGET = [
         "eps_dec_episode",
         "lr",
         "reset_integrator",
+        "eps_end",
     )
 ]
 """The shared dimensions and α left out: these studies search the learning target alone."""
@@ -773,6 +775,9 @@ def test_a_per_episode_schedule_explores_for_a_share_of_the_budget() -> None:
     assert kept["eps_dec_action"] == space["eps_dec_action"]
     assert fit_to_budget(space, 100, 0.2, 0.99) == space  # 0.99 / 20 is above the range
     assert fit_to_budget(space, 2000, 0.0, 0.99) == space
+    # the span is measured to the highest floor offered: ε at 0.05 is reached first
+    assert highest_floor(space, 0.01) == max(space["eps_end"].choices) == 0.05
+    assert highest_floor({k: p for k, p in space.items() if k != "eps_end"}, 0.01) == 0.01
     study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0))
     for _ in range(40):
         params = sample(trial := study.ask(), kept)

@@ -9,12 +9,16 @@ from pathlib import Path
 
 import optuna
 import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 
 from cdqn.cli import check_overrides
 from cdqn.records import Tag
 from cdqn.tuning.presets import specification_of
 from cdqn.tuning.settings import ParamSpec
 from cdqn.tuning.space import fitted_specification, with_each_input_map
+from cdqn.tuning.study import Study
+from tests.conftest import CONF_DIR
 from tests.test_tune import _overrides, _runs, _study
 
 SPACE = {
@@ -79,6 +83,26 @@ def test_every_shipped_preset_holds_a_specification_and_its_space() -> None:
         for agent in ("h2", "hinf", "hinf_f", "ddqn"):
             params, searched = specification_of(f"tuned_{name}-{agent}", "no-such-folder")
             assert params and set(params) <= set(searched), (name, agent)
+
+
+def test_a_warm_start_keeps_the_settings_its_preset_did_not_search(tmp_path: Path) -> None:
+    """A dimension the preset's study did not search (the shipped presets' ε floor) starts
+    at the value the preset trained with, fitted like the others; a preset of another floor
+    starts at its own, and what its study searched stays its specification's."""
+    overrides = [o for o in _overrides(tmp_path, "floor", 1) if o != "~tune.space.eps_end"]
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        study = Study(compose("tune", overrides=overrides))
+    shipped, searched = specification_of("tuned_cartpole-hinf_f", "no-such-folder")
+    assert "eps_end" not in searched and study.space["eps_end"].choices == [0.01, 0.02, 0.05]
+    params, _ = study._preset_specification("tuned_cartpole-hinf_f")
+    assert params == shipped | {"eps_end": 0.01}
+    preset = OmegaConf.load(CONF_DIR / "weights" / "tuned_cartpole-hinf_f.yaml")
+    preset.train.eps_end, preset.train.lr = 0.05, 0.125  # lr: searched, the specification's
+    (tmp_path / "presets" / "weights").mkdir(parents=True)
+    OmegaConf.save(preset, tmp_path / "presets" / "weights" / "tuned_floor-hinf_f.yaml")
+    params, searched = study._preset_specification("tuned_floor-hinf_f")
+    assert params["eps_end"] == 0.05 and params["lr"] == shipped["lr"]
+    assert fitted_specification(study.space, params, searched)["eps_end"] == 0.05
 
 
 def test_an_unknown_warm_start_preset_is_refused_with_one_line() -> None:

@@ -35,15 +35,34 @@ def specification_of(
     (``extra.tuned.specification``, ``extra.tuned.space``), from
     ``<preset_dir>/weights/<name>.yaml`` or else the shipped ``conf/weights/<name>.yaml``;
     :class:`~cdqn.config.ConfigError` when neither holds them."""
+    path = _preset_file(name, preset_dir)
+    tuned = OmegaConf.select(OmegaConf.load(path), "extra.tuned")
+    tuned = OmegaConf.to_container(tuned) if OmegaConf.is_dict(tuned) else None
+    if not isinstance(tuned, dict) or not isinstance(tuned.get("specification"), dict):
+        raise ConfigError(f"{path} is no tuned preset (no extra.tuned.specification)")
+    return tuned["specification"], tuned.get("space") or {}
+
+
+def preset_settings(name: str, preset_dir: str | Path, paths: dict[str, str]) -> dict[str, Any]:
+    """The values the preset ``name`` sets at ``paths`` (dimension name → configuration
+    path), for the dimensions its study did not search: a warm start keeps them as the
+    preset trained them (e.g. ``train.eps_end``).  Paths the preset does not set are left
+    out."""
+    preset = OmegaConf.load(_preset_file(name, preset_dir))
+    out: dict[str, Any] = {}
+    for dim, path in paths.items():
+        value = OmegaConf.select(preset, path, default=None)
+        if value is not None and not OmegaConf.is_config(value):
+            out[dim] = value
+    return out
+
+
+def _preset_file(name: str, preset_dir: str | Path) -> Path:
+    """``<preset_dir>/weights/<name>.yaml`` or else the shipped ``conf/weights/<name>.yaml``."""
     folders = [Path(preset_dir) / "weights", CONF_DIR / "weights"]
     for folder in folders:
-        path = folder / f"{name}.yaml"
-        if path.is_file():
-            tuned = OmegaConf.select(OmegaConf.load(path), "extra.tuned")
-            tuned = OmegaConf.to_container(tuned) if OmegaConf.is_dict(tuned) else None
-            if not isinstance(tuned, dict) or not isinstance(tuned.get("specification"), dict):
-                raise ConfigError(f"{path} is no tuned preset (no extra.tuned.specification)")
-            return tuned["specification"], tuned.get("space") or {}
+        if (folder / f"{name}.yaml").is_file():
+            return folder / f"{name}.yaml"
     raise ConfigError(f"no preset {name}.yaml in {' or '.join(map(str, folders))}")
 
 

@@ -21,6 +21,8 @@ NORMALIZE_PATH = "env.normalize"
 """The [−1, 1] map: not offered for a wide one-hot observation (:func:`fit_to_observation`)."""
 EPS_PATH = "train.eps_dec"
 """The ε decrease; its per-episode range depends on the episode budget (:func:`fit_to_budget`)."""
+EPS_END_PATH = "train.eps_end"
+"""ε's floor; the highest offered sets the per-episode range (:func:`highest_floor`)."""
 GAMMA_PATH = "weights.target.gamma_eff"
 """The effective discount of the learning target; bounded by the NTK box (:func:`fit_to_box`)."""
 
@@ -170,12 +172,20 @@ def fit_to_observation(
     return out
 
 
+def highest_floor(space: dict[str, ParamSpec], configured: float) -> float:
+    """The highest ε floor (``train.eps_end``) a trial can have: the largest the space offers,
+    else ``configured``."""
+    offered = [float(v) for p in space.values() if p.path == EPS_END_PATH
+               for v in (p.choices or [p.high]) if v is not None]  # fmt: skip
+    return max(offered, default=configured)
+
+
 def fit_to_budget(
     space: dict[str, ParamSpec], episodes: int, share: float, eps_span: float
 ) -> dict[str, ParamSpec]:
     """``space`` with the per-episode ε decrease (``train.eps_dec`` when
     ``eps_schedule=episode``) kept to schedules that reach their floor no earlier than
-    ``share`` of the ``episodes``: ε falls by ``eps_span`` (start − floor) in
+    ``share`` of the ``episodes``: ε falls by ``eps_span`` (start − the highest floor) in
     ``eps_span / eps_dec`` episodes, so ``eps_dec ≤ eps_span / (share · episodes)``.
 
     A schedule that stops exploring early leaves the seeds that have not met the reward by

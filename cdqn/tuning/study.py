@@ -39,7 +39,7 @@ from cdqn.training.interrupt import GracefulStop
 from cdqn.tuning.clock import CAPPED, MEMBER_EPISODES, EvaluationSize, StudyClock, recorded_stop
 from cdqn.tuning.evaluation import eval_processes, evaluate, write_comparison
 from cdqn.tuning.objective import score_text
-from cdqn.tuning.presets import specification_of, write_preset
+from cdqn.tuning.presets import preset_settings, specification_of, write_preset
 from cdqn.tuning.report import log_design, plot_study
 from cdqn.tuning.settings import (
     TuneConfig,
@@ -57,6 +57,7 @@ from cdqn.tuning.space import (
     fit_to_budget,
     fit_to_observation,
     fitted_specification,
+    highest_floor,
     with_each_input_map,
 )
 from cdqn.tuning.storage import WORKER_SEED_STRIDE, StudyLock, open_storage
@@ -123,7 +124,7 @@ class Study:
         env.close()
         space = fit_to_observation(space, bounded, int(box.shape[0]), most, one_hot)
         train = self.conf.train
-        span = float(train.eps_start) - float(train.eps_end)
+        span = float(train.eps_start) - highest_floor(space, float(train.eps_end))
         return fit_to_budget(space, self.episodes, self.conf.tune.explore_share, span)
 
     def _rho_max(self) -> float:
@@ -271,7 +272,7 @@ class Study:
         dimension out, and are certified and pruned like any."""
         t = self.conf.tune
         fitted = [
-            (name, fitted_specification(self.space, *specification_of(name, t.preset_dir)))
+            (name, fitted_specification(self.space, *self._preset_specification(name)))
             for name in (warm_start_preset(env_name, self.agent) for env_name in t.warm_start)
         ]
         crossed = [(name, other) for name, params in fitted
@@ -286,6 +287,18 @@ class Study:
             queued.append(params)
             study.enqueue_trial(params, user_attrs={Tag.START_FROM: name})
             log.info("trial %d starts from %s: %s", len(queued) - 1, name, json.dumps(params))
+
+    def _preset_specification(self, name: str) -> tuple[dict[str, Any], dict[str, Any]]:
+        """The preset ``name``'s specification and the space it was searched in
+        (:func:`~cdqn.tuning.presets.specification_of`), with the value it trained at each
+        plain dimension of this space that its study did not search (a number or a choice at
+        a path, e.g. the ε floor ``train.eps_end``): the preset is tried as it trained."""
+        params, searched = specification_of(name, self.conf.tune.preset_dir)
+        unsearched = {dim: p.path.format(controller=self.agent)
+                      for dim, p in self.space.items()
+                      if dim not in searched and not (p.scale or p.horizon or p.width)}  # fmt: skip
+        kept = preset_settings(name, self.conf.tune.preset_dir, unsearched)
+        return kept | params, searched | {dim: {"path": self.space[dim].path} for dim in kept}
 
     def close(self, study: Any, wall: float) -> dict[str, Any]:
         """Count the trials, write the plots and the best trial's preset, and evaluate it on
