@@ -278,14 +278,18 @@ REFUSED = [
     (  # an image: not flattened into the network's input
         ["env.id=CarRacing-v3", "+env.kwargs.continuous=false"],
         "env.id='CarRacing-v3' with env.kwargs={'continuous': False}: cdqn's network takes "
-        "at most 1024 inputs from a Box observation (flattened), a MultiBinary one, or discrete "
-        "ones one-hot (Discrete, MultiDiscrete, a Tuple of them); got Box(0, 255, (96, 96, 3), "
-        "uint8) (27648 inputs)",
+        "at most 1024 inputs from a Box observation (flattened), a MultiBinary one, discrete "
+        "ones one-hot (Discrete, MultiDiscrete), or a Tuple or Dict of these; got "
+        "Box(0, 255, (96, 96, 3), uint8) (27648 inputs)",
     ),
     (  # cells 1..600 either side, one-hot: 1200 inputs
         [f"env.id={TOY}", "+env.kwargs.form=multi_discrete", "+env.kwargs.length=600"],
         f"env.id='{TOY}' with env.kwargs={{'form': 'multi_discrete', 'length': 600}}: cdqn's "
         "network takes at most 1024 inputs",
+    ),
+    (  # a Text part: no vector of numbers
+        [f"env.id={TOY}", "+env.kwargs.form=text"],
+        f"env.id='{TOY}' with env.kwargs={{'form': 'text'}}: cdqn's network takes at most 1024",
     ),
     (  # a continuous variant chosen by a constructor argument
         ["env.id=LunarLander-v3", "+env.kwargs.continuous=true"],
@@ -452,14 +456,16 @@ def test_actions_numbered_from_another_start_reach_the_environment_shifted() -> 
     ("form", "first", "width"),
     [("column", [0.0, 1.0], 2),  # a (2, 1) Box, flattened
      ("multi_discrete", [1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1], 16),  # cells 1 | 7
-     ("multi_binary", [1, 0, 0, 0, 0, 0, 0, 0], 8)],  # position 0 of 8
+     ("multi_binary", [1, 0, 0, 0, 0, 0, 0, 0], 8),  # position 0 of 8
+     ("dict", [1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1], 16),  # left 1 | right 7
+     ("mixed", [1, 0, 0, 0, 0, 0, 0, 0, 0.0], 9)],  # cell 0 of 8 | x (keys in order)
 )  # fmt: skip
 def test_other_observation_spaces_are_flattened_or_one_hot(
     form: str, first: list[float], width: int
 ) -> None:
-    """A ``Box`` of another shape and a ``MultiBinary`` are flattened, a ``MultiDiscrete``
-    (values from its ``start``) goes in one-hot per part; a population of them trains as the
-    single runs of its seeds."""
+    """A ``Box`` of another shape, a ``MultiBinary`` and a ``Dict`` with a ``Box`` part are
+    flattened, a ``MultiDiscrete`` (values from its ``start``) and a ``Dict`` of ``Discrete``
+    go in one-hot per part; a population of them trains as the single runs of its seeds."""
     env = make_env(EnvConfig(id=TOY, kwargs={"form": form}, max_episode_steps=50))
     assert env.observation_space.shape == (width,)
     assert env.reset(seed=0)[0].tolist() == first

@@ -210,8 +210,9 @@ def make_env(cfg: EnvConfig) -> gym.Env:
         inputs = f" ({gym.spaces.flatdim(space)} inputs)" if isinstance(space, Box) else ""
         raise ConfigError(
             f"env.id={cfg.id!r}{_with_kwargs(cfg)}: cdqn's network takes at most "
-            f"{MAX_FLAT_INPUTS} inputs from a Box observation (flattened), a MultiBinary one, or "
-            f"discrete ones one-hot (Discrete, MultiDiscrete, a Tuple of them); got {raw}{inputs}"
+            f"{MAX_FLAT_INPUTS} inputs from a Box observation (flattened), a MultiBinary one, "
+            f"discrete ones one-hot (Discrete, MultiDiscrete), or a Tuple or Dict of these; got "
+            f"{raw}{inputs}"
         )
     if cfg.obs_indices is not None:
         bad = [i for i in cfg.obs_indices if not 0 <= i < space.shape[0]]

@@ -2,15 +2,16 @@
 
 :func:`cdqn.envs.make.make_env` numbers the actions from 0 (:class:`ActionStart`) and
 applies the observation maps in the order one-hot encoding (a ``Discrete``,
-``MultiDiscrete`` or ``Tuple`` of them) or flattening (a ``Box`` of another shape, a
-``MultiBinary``), feature subset, scaling, radial basis features.
+``MultiDiscrete``, or a ``Tuple`` or ``Dict`` of them) or flattening (a ``Box`` of another
+shape, a ``MultiBinary``, a ``Tuple`` or ``Dict`` with ``Box`` parts), feature subset,
+scaling, radial basis features.
 """
 
 from __future__ import annotations
 
 import gymnasium as gym
 import numpy as np
-from gymnasium.spaces import Box, Discrete, MultiBinary, MultiDiscrete, Space, Tuple
+from gymnasium.spaces import Box, Dict, Discrete, MultiBinary, MultiDiscrete, Space, Tuple
 
 
 def real_dtype(space: Box) -> np.dtype:
@@ -23,8 +24,9 @@ def real_dtype(space: Box) -> np.dtype:
 
 class OneHot(gym.ObservationWrapper):
     """A ``Discrete(n)`` observation as the one-hot vector ``e_s`` of length ``n``; a
-    ``MultiDiscrete`` one, or a ``Tuple`` of such spaces, as the concatenation of the one-hot
-    vectors of its parts (in the order of the flattened ``nvec``).
+    ``MultiDiscrete`` one, or a ``Tuple`` or ``Dict`` of such spaces, as the concatenation of
+    the one-hot vectors of its parts (in the order of the flattened ``nvec``, of the
+    ``Tuple``, of the ``Dict``'s keys: ``gymnasium.spaces.flatten``'s order).
 
     A state index fed as a number would be read as a magnitude (Taxi's state 400 "larger"
     than state 4).  With ``e_s`` every state has its own input direction: in the NTK of
@@ -41,6 +43,8 @@ class OneHot(gym.ObservationWrapper):
         self.first = int(self.starts[0])
         self.offsets = np.concatenate([[0], np.cumsum(self.sizes)[:-1]]).astype(np.int64)
         self.width = int(sum(self.sizes))
+        self.raw = env.observation_space
+        self.nested = _nested(self.raw)
         self.observation_space = Box(0.0, 1.0, (self.width,), dtype=np.float32)
 
     @staticmethod
@@ -57,8 +61,9 @@ class OneHot(gym.ObservationWrapper):
         if isinstance(space, MultiDiscrete):
             sizes, starts = space.nvec.reshape(-1), np.asarray(space.start).reshape(-1)
             return [(int(n), int(s)) for n, s in zip(sizes, starts, strict=True)] or None
-        if isinstance(space, Tuple) and space.spaces:
-            each = [OneHot.parts(s) for s in space.spaces]
+        if isinstance(space, Tuple | Dict) and space.spaces:
+            parts = space.spaces.values() if isinstance(space, Dict) else space.spaces
+            each = [OneHot.parts(s) for s in parts]
             return None if any(p is None for p in each) else [x for p in each if p for x in p]
         return None
 
@@ -67,19 +72,42 @@ class OneHot(gym.ObservationWrapper):
         if isinstance(observation, int | np.integer):  # one Discrete
             out[int(observation) - self.first] = 1.0
             return out
+        if self.nested:  # a Dict, or a Tuple with Tuple or Dict parts: gymnasium's order
+            return np.asarray(gym.spaces.flatten(self.raw, observation), dtype=np.float32)
         parts = observation if isinstance(observation, tuple) else (observation,)
         values = np.concatenate([np.asarray(v, dtype=np.int64).reshape(-1) for v in parts])
         out[self.offsets + values - self.starts] = 1.0
         return out
 
 
+def _nested(space: Space) -> bool:
+    """Whether ``space`` is a ``Dict``, or a ``Tuple`` with a ``Tuple`` or ``Dict`` part."""
+    return isinstance(space, Dict) or (
+        isinstance(space, Tuple) and any(isinstance(s, Tuple | Dict) for s in space.spaces)
+    )
+
+
+def _feature_parts(space: Space) -> bool:
+    """Whether ``space`` is made of ``Box``, ``Discrete``, ``MultiDiscrete`` and
+    ``MultiBinary`` parts only (nested in ``Tuple`` and ``Dict``): the spaces whose
+    flattening is a vector of numbers (a ``Text`` or ``Graph`` part is not)."""
+    if isinstance(space, Tuple | Dict):
+        parts = space.spaces.values() if isinstance(space, Dict) else space.spaces
+        return bool(parts) and all(_feature_parts(s) for s in parts)
+    return isinstance(space, Box | Discrete | MultiDiscrete | MultiBinary)
+
+
 def flattens(space: Space, most: int) -> bool:
     """Whether :func:`cdqn.envs.make.make_env` flattens ``space`` into a flat ``Box``
-    (``gymnasium.wrappers.FlattenObservation``): a ``Box`` of another shape or a
-    ``MultiBinary``, of at most ``most`` entries (an image of 96 × 96 × 3 is not a feature
-    vector for a two-layer network)."""
+    (``gymnasium.wrappers.FlattenObservation``): a ``Box`` of another shape, a
+    ``MultiBinary``, or a ``Tuple`` or ``Dict`` of feature parts (:class:`OneHot` takes those
+    of discrete parts only; ``flatten`` sends a ``Discrete`` part to its one-hot vector in
+    [0, 1] and keeps a ``Box`` part's bounds), of at most ``most`` entries (an image of
+    96 × 96 × 3 is not a feature vector for a two-layer network)."""
     shaped = isinstance(space, Box) and len(space.shape) != 1
-    return (shaped or isinstance(space, MultiBinary)) and 0 < gym.spaces.flatdim(space) <= most
+    composite = isinstance(space, Tuple | Dict) and _feature_parts(space)
+    flat = shaped or composite or isinstance(space, MultiBinary)
+    return flat and 0 < gym.spaces.flatdim(space) <= most
 
 
 class ActionStart(gym.ActionWrapper):

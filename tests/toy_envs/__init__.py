@@ -5,7 +5,9 @@
 ``CdqnChain-v0``: walk right along a chain of ``length`` cells (``Box`` observation, two
 actions, numbered from ``action_start``; ``cells=True``: an integer ``Box`` of the cells to
 either side; ``form``: the same observation as a ``(2, 1)`` column, the cells as a
-``MultiDiscrete``, or the position as a ``MultiBinary``), capped at 50 steps;
+``MultiDiscrete``, the position as a ``MultiBinary``, the cells as a ``Dict`` of two
+``Discrete``, ``x`` and the cell as a ``Dict`` of a ``Box`` and a ``Discrete``, or with a
+``Text`` part), capped at 50 steps;
 ``CdqnChainNoCap-v0``: the same, registered without an episode cap."""
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from gymnasium.spaces import Box, Discrete, MultiBinary, MultiDiscrete
+from gymnasium.spaces import Box, Dict, Discrete, MultiBinary, MultiDiscrete, Text
 
 
 class Chain(gym.Env):
@@ -42,21 +44,28 @@ class Chain(gym.Env):
             "column": Box(0.0, 1.0, (2, 1), dtype=np.float32),
             "multi_discrete": MultiDiscrete([length, length], start=[1, 0]),
             "multi_binary": MultiBinary(length),
+            "dict": Dict({"right": Discrete(length), "left": Discrete(length, start=1)}),
+            "mixed": Dict({"x": Box(0.0, 1.0, (1,), dtype=np.float32), "cell": Discrete(length)}),
+            "text": Dict({"x": Box(0.0, 1.0, (1,), dtype=np.float32), "note": Text(4)}),
         }[form]
         self.action_space = Discrete(2, start=action_start)
         self.pos = 0
 
-    def _obs(self) -> np.ndarray:
+    def _obs(self) -> Any:
+        x = self.pos / (self.length - 1)
+        if self.form == "dict":
+            return {"left": self.pos + 1, "right": self.length - 1 - self.pos}
+        if self.form in ("mixed", "text"):
+            other = {"cell": self.pos} if self.form == "mixed" else {"note": "walk"}
+            return {"x": np.array([x], dtype=np.float32), **other}
         if self.form == "multi_discrete":  # cells to the left (numbered from 1) and right
             return np.array([self.pos + 1, self.length - 1 - self.pos], dtype=np.int64)
         if self.form == "multi_binary":
             return (np.arange(self.length) == self.pos).astype(np.int8)
         if self.form == "column":
-            x = self.pos / (self.length - 1)
             return np.array([[x], [1.0 - x]], dtype=np.float32)
         if self.cells:  # an integer observation: the cells to the left and to the right
             return np.array([self.pos, self.length - 1 - self.pos], dtype=np.int64)
-        x = self.pos / (self.length - 1)
         return np.array([x, 1.0 - x], dtype=np.float32)
 
     def reset(
