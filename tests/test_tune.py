@@ -806,6 +806,19 @@ def test_the_episode_budget_follows_the_environments_cap() -> None:
     assert episode_budget(TuneSettings(episodes=42), 500) == 42
 
 
+@pytest.mark.parametrize(("env", "episodes"), [("acrobot", 600), ("cartpole", 1500)])
+def test_a_study_reads_the_cap_its_environment_leaves_to_the_registration(
+    tmp_path: Path, env: str, episodes: int
+) -> None:
+    """``env=acrobot`` leaves the cap to Acrobot-v1's registration (500 steps): the budget
+    is 300 000 / 500 episodes, not ``max_episodes`` as for an environment without a cap."""
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        over = [*_overrides(tmp_path, "cap", 1)[:5], f"env={env}", "controller=hinf_f"]
+        study = Study(compose("tune", overrides=over))
+    assert study.conf.env.max_episode_steps == (None if env == "acrobot" else 200)
+    assert study.episodes == episodes
+
+
 def tuned_box(summary: dict) -> DictConfig:
     """``weights.theta_bounds`` of a study's preset."""
     return OmegaConf.load(summary["preset"]).weights.theta_bounds

@@ -45,6 +45,7 @@ from cdqn.tuning.settings import (
     TuneConfig,
     TuneSettings,
     episode_budget,
+    episode_cap,
     trial_cap,
     validate_tune,
     warm_start_preset,
@@ -83,7 +84,7 @@ class Study:
         t = self.conf.tune
         self.agent = self.conf.controller.name
         self.designed = self.agent in TARGET_CONTROLLERS
-        self.episodes = episode_budget(t, self.conf.env.max_episode_steps)
+        self.episodes = episode_budget(t, episode_cap(self.conf.env))
         self.space = self._offered(t.space)
         self.uri = resolve_tracking_uri(self.conf.tracking.uri)
         # interpolations kept: a key that reads another (``controller.lr: ${weights.ddqn.lr}``,
