@@ -155,8 +155,9 @@ def test_network_dtype_option() -> None:
     assert net.hidden.weight.dtype == torch.float32
 
 
-TUNED_PRESET_KEYS = {"weights", "env", "train", "controller", "extra"}
-"""The groups a tuned weights preset (``_global_``) may set: those a study tunes."""
+TUNED_PRESET_KEYS = {"weights", "env", "train", "controller", "network", "extra"}
+"""The groups a tuned weights preset (``_global_``) may set: those a study tunes, and the
+network it was tuned on."""
 
 
 def _group_files() -> list[tuple[str, Path]]:

@@ -18,10 +18,11 @@ from hydra import compose, initialize_config_dir
 from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
 
-from cdqn.config import validate
+from cdqn.config import EnvConfig, validate
 from cdqn.training.run import run, run_population
 from cdqn.training.store import ensure_store
 from cdqn.training.sweep import PrepareStore, config_hash
+from cdqn.tuning.settings import TuneSettings, episode_budget, episode_cap
 from tests.conftest import CONF_DIR, compose_config
 from tests.helpers import episode_returns, run_cli, runs_of, signal_table
 
@@ -62,7 +63,10 @@ def test_the_like_for_like_sweep_takes_each_agents_tuned_preset(env: str, contro
     cfg = _compose_sweep("like", [f"env={env}", f"controller={controller}"], hydra=False)
     assert cfg.weights.name == f"tuned_{env}-{controller}"
     assert cfg.env.name == env and cfg.extra.tuned.agent == controller
-    assert cfg.extra.tuned.budget.episodes == 500 and cfg.extra.tuned.budget.trials == 20
+    env_cfg = EnvConfig(id=cfg.env.id, max_episode_steps=cfg.env.max_episode_steps)
+    cap = episode_cap(env_cfg)  # the default budget: 300 000 steps over the cap
+    assert cfg.extra.tuned.budget.episodes == episode_budget(TuneSettings(), cap)
+    assert cfg.extra.tuned.budget.trials == 20
     assert cfg.train.episodes == 2000 and cfg.network.width == 2500
 
 

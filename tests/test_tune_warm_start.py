@@ -86,22 +86,29 @@ def test_every_shipped_preset_holds_a_specification_and_its_space() -> None:
 
 
 def test_a_warm_start_keeps_the_settings_its_preset_did_not_search(tmp_path: Path) -> None:
-    """A dimension the preset's study did not search (the shipped presets' ε floor) starts
-    at the value the preset trained with, fitted like the others; a preset of another floor
-    starts at its own, and what its study searched stays its specification's."""
+    """A dimension the preset's study did not search (the ε floor, in a study whose space had
+    none) starts at the value the preset trained with, fitted like the others; a preset of
+    another floor starts at its own, and what its study searched stays its specification's."""
     overrides = [o for o in _overrides(tmp_path, "floor", 1) if o != "~tune.space.eps_end"]
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
         study = Study(compose("tune", overrides=overrides))
-    shipped, searched = specification_of("tuned_cartpole-hinf_f", "no-such-folder")
-    assert "eps_end" not in searched and study.space["eps_end"].choices == [0.01, 0.02, 0.05]
-    params, _ = study._preset_specification("tuned_cartpole-hinf_f")
-    assert params == shipped | {"eps_end": 0.01}
-    preset = OmegaConf.load(CONF_DIR / "weights" / "tuned_cartpole-hinf_f.yaml")
-    preset.train.eps_end, preset.train.lr = 0.05, 0.125  # lr: searched, the specification's
-    (tmp_path / "presets" / "weights").mkdir(parents=True)
-    OmegaConf.save(preset, tmp_path / "presets" / "weights" / "tuned_floor-hinf_f.yaml")
-    params, searched = study._preset_specification("tuned_floor-hinf_f")
-    assert params["eps_end"] == 0.05 and params["lr"] == shipped["lr"]
+    assert study.space["eps_end"].choices == [0.01, 0.02, 0.05]
+    shipped = OmegaConf.load(CONF_DIR / "weights" / "tuned_cartpole-hinf_f.yaml")
+    folder = tmp_path / "presets" / "weights"
+    folder.mkdir(parents=True)
+    for name, floor, lr in (("unsearched", 0.02, None), ("other", 0.05, 0.125)):
+        preset = shipped.copy()
+        del preset.extra.tuned.space["eps_end"], preset.extra.tuned.specification["eps_end"]
+        preset.train.eps_end = floor
+        if lr is not None:  # lr: searched, the specification's stays
+            preset.train.lr = lr
+        OmegaConf.save(preset, folder / f"tuned_{name}-hinf_f.yaml")
+    specification, searched = specification_of("tuned_unsearched-hinf_f", tmp_path / "presets")
+    assert "eps_end" not in searched and "eps_end" not in specification
+    params, _ = study._preset_specification("tuned_unsearched-hinf_f")
+    assert params == specification | {"eps_end": 0.02}
+    params, searched = study._preset_specification("tuned_other-hinf_f")
+    assert params["eps_end"] == 0.05 and params["lr"] == specification["lr"]
     assert fitted_specification(study.space, params, searched)["eps_end"] == 0.05
 
 
@@ -149,7 +156,7 @@ def test_a_new_study_starts_from_the_presets_specifications(tmp_path: Path) -> N
 @pytest.mark.slow
 def test_a_warm_start_trains_on_each_observation_map(tmp_path: Path) -> None:
     """With the [−1, 1] map searched, a study queues the shipped CartPole preset's
-    specification on its own map (raw) and then on the other, both tagged with the preset."""
+    specification on its own map and then on the other, both tagged with the preset."""
     overrides = [
         o
         for o in _overrides(
@@ -160,7 +167,8 @@ def test_a_warm_start_trains_on_each_observation_map(tmp_path: Path) -> None:
     _study(overrides)
     storage = f"sqlite:///{tmp_path / 'optuna.db'}"
     trials = optuna.load_study(study_name="crossed", storage=storage).trials
-    assert [t.params["normalize"] for t in trials] == [False, True]
+    own = specification_of("tuned_cartpole-hinf_f", tmp_path / "presets")[0]["normalize"]
+    assert [t.params["normalize"] for t in trials] == [own, not own]
     assert {t.user_attrs[Tag.START_FROM] for t in trials} == {"tuned_cartpole-hinf_f"}
     sampled = {"normalize", "gamma_eff"}  # the tests' γ_eff is a discount: left to the sampler
     kept = [{k: v for k, v in t.params.items() if k not in sampled} for t in trials]
