@@ -19,10 +19,11 @@ from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
 
 from cdqn.config import EnvConfig, validate
+from cdqn.envs.make import episode_cap
 from cdqn.training.run import run, run_population
 from cdqn.training.store import ensure_store
 from cdqn.training.sweep import PrepareStore, config_hash
-from cdqn.tuning.settings import TuneSettings, episode_budget, episode_cap
+from cdqn.tuning.settings import TuneSettings, episode_budget
 from tests.conftest import CONF_DIR, compose_config
 from tests.helpers import episode_returns, run_cli, runs_of, signal_table
 

@@ -11,7 +11,15 @@
 
 from cdqn.config import CONF_DIR
 from cdqn.envs.adopt import BOX_SOURCES, Adopted, adopt, env_presets
-from cdqn.envs.make import EXTRAS, EnvId, env_label, env_sizes, make_env, registration
+from cdqn.envs.make import (
+    EXTRAS,
+    EnvId,
+    env_label,
+    env_sizes,
+    episode_cap,
+    make_env,
+    registration,
+)
 from cdqn.envs.wrappers import ObservationScale, ObservationSubset, OneHot, RadialFeatures
 
 __all__ = [
@@ -28,6 +36,7 @@ __all__ = [
     "env_label",
     "env_presets",
     "env_sizes",
+    "episode_cap",
     "make_env",
     "registration",
 ]

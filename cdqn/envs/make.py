@@ -184,6 +184,14 @@ def _entry_text(spec: EnvSpec) -> str:
     return str(entry)
 
 
+def episode_cap(env: EnvConfig) -> int | None:
+    """The episode cap of ``env``: ``env.max_episode_steps``, else its id's registration's
+    (``env=acrobot`` leaves it to Acrobot-v1's 500); None where neither has one."""
+    if env.max_episode_steps is not None:
+        return int(env.max_episode_steps)
+    return registration(str(env.id)).max_episode_steps
+
+
 def make_env(cfg: EnvConfig) -> gym.Env:
     """Build the environment of ``cfg``: gymnasium id (its module imported first), its
     constructor arguments ``env.kwargs``, episode cap, actions numbered from 0, one-hot

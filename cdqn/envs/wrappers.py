@@ -62,8 +62,7 @@ class OneHot(gym.ObservationWrapper):
             sizes, starts = space.nvec.reshape(-1), np.asarray(space.start).reshape(-1)
             return [(int(n), int(s)) for n, s in zip(sizes, starts, strict=True)] or None
         if isinstance(space, Tuple | Dict) and space.spaces:
-            parts = space.spaces.values() if isinstance(space, Dict) else space.spaces
-            each = [OneHot.parts(s) for s in parts]
+            each = [OneHot.parts(s) for s in _parts(space)]
             return None if any(p is None for p in each) else [x for p in each if p for x in p]
         return None
 
@@ -80,6 +79,11 @@ class OneHot(gym.ObservationWrapper):
         return out
 
 
+def _parts(space: Tuple | Dict) -> list[Space]:
+    """The parts of a ``Tuple``, or of a ``Dict`` in its keys' order."""
+    return list(space.spaces.values() if isinstance(space, Dict) else space.spaces)
+
+
 def _nested(space: Space) -> bool:
     """Whether ``space`` is a ``Dict``, or a ``Tuple`` with a ``Tuple`` or ``Dict`` part."""
     return isinstance(space, Dict) or (
@@ -92,8 +96,7 @@ def _feature_parts(space: Space) -> bool:
     ``MultiBinary`` parts only (nested in ``Tuple`` and ``Dict``): the spaces whose
     flattening is a vector of numbers (a ``Text`` or ``Graph`` part is not)."""
     if isinstance(space, Tuple | Dict):
-        parts = space.spaces.values() if isinstance(space, Dict) else space.spaces
-        return bool(parts) and all(_feature_parts(s) for s in parts)
+        return bool(space.spaces) and all(_feature_parts(s) for s in _parts(space))
     return isinstance(space, Box | Discrete | MultiDiscrete | MultiBinary)
 
 

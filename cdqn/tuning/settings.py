@@ -8,15 +8,7 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf
 
-from cdqn.config import (
-    TARGET_CONTROLLERS,
-    Config,
-    ConfigError,
-    EnvConfig,
-    register_configs,
-    validate,
-)
-from cdqn.envs.make import registration
+from cdqn.config import TARGET_CONTROLLERS, Config, ConfigError, register_configs, validate
 
 TUNABLE = ("h2", "hinf", "hinf_f", "ddqn")
 """Agents a study can tune: the three synthesised designs and Double DQN."""
@@ -154,18 +146,10 @@ register_configs()
 ConfigStore.instance().store(name="base_tune", node=TuneConfig)
 
 
-def episode_cap(env: EnvConfig) -> int | None:
-    """The episode cap of ``env``: ``env.max_episode_steps``, else its id's registration's
-    (``env=acrobot`` leaves it to Acrobot-v1's 500); None where neither has one."""
-    if env.max_episode_steps is not None:
-        return int(env.max_episode_steps)
-    return registration(str(env.id)).max_episode_steps
-
-
 def episode_budget(t: TuneSettings, cap: int | None) -> int:
     """Episodes per member: ``tune.episodes``, else ``tune.steps / cap`` clamped to
     ``[tune.min_episodes, tune.max_episodes]`` (``cap``: the environment's episode cap,
-    :func:`episode_cap`)."""
+    :func:`cdqn.envs.make.episode_cap`)."""
     if t.episodes is not None:
         return t.episodes
     if not cap:

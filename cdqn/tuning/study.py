@@ -45,7 +45,6 @@ from cdqn.tuning.settings import (
     TuneConfig,
     TuneSettings,
     episode_budget,
-    episode_cap,
     trial_cap,
     validate_tune,
     warm_start_preset,
@@ -72,7 +71,7 @@ class Study:
     """The study of ``cfg`` (a composed ``conf/tune.yaml``)."""
 
     def __init__(self, cfg: DictConfig) -> None:
-        from cdqn.envs import adopt
+        from cdqn.envs import adopt, episode_cap
 
         adopted = adopt(cfg)  # the study's environment: label, cap, threshold, box source
         if adopted.change is not None:
