@@ -37,6 +37,7 @@ from mlflow.exceptions import MlflowException
 from mlflow.store.db.db_types import DATABASE_ENGINES
 from mlflow.tracking import MlflowClient
 
+from analysis.shared import AGENT_SETTINGS, SEEDS, SHARED_SETTINGS
 from cdqn import records
 from cdqn.config import (
     TARGET_CONTROLLERS,
@@ -61,36 +62,52 @@ TAG_COLUMNS = (T.ENV, T.ENV_ID, T.CONTROLLER, T.SEED, T.GIT_COMMIT, T.DESIGN_SOU
 RUN_KEY = ("run_id", "env", "controller", "seed", "settings")
 """The columns that identify a run in the per-episode table."""
 
-SETTINGS = (
-    "design_source",
-    "controller.design",
-    "controller.synthesis.ntk_bounds",
-    "network.width",
-    "network.dtype",
-    "train.episodes",
-    "train.lr",
-    "train.discount",
-    "train.eps_dec",
-    "train.eps_schedule",
-    "train.bootstrap_terminal",
-    "env.max_episode_steps",
-    "env.obs_indices",
-    "env.normalize",
-    "weights.target.gamma_eff",
-    "weights.target.step_scale",
-    "weights.target.rho_cap",
-    *(
-        f"weights.controller_target.{controller}.{key}"
-        for controller in TARGET_CONTROLLERS
-        for key in TARGET_FIELDS
-    ),
-    "weights.replay.repeats",
-    "weights.replay.last",
-    "weights.replay.when",
-    "controller.discount",
+SETTINGS = tuple(
+    dict.fromkeys(
+        (
+            "design_source",
+            "controller.design",
+            "controller.synthesis.ntk_bounds",
+            "network.width",
+            "network.dtype",
+            "train.episodes",
+            "train.lr",
+            "train.discount",
+            "train.eps_dec",
+            "train.eps_schedule",
+            "train.bootstrap_terminal",
+            "env.max_episode_steps",
+            "env.obs_indices",
+            "env.normalize",
+            "weights.target.gamma_eff",
+            "weights.target.step_scale",
+            "weights.target.rho_cap",
+            *(
+                f"weights.controller_target.{controller}.{key}"
+                for controller in TARGET_CONTROLLERS
+                for key in TARGET_FIELDS
+            ),
+            "controller.discount",
+            *(s.key for s in SHARED_SETTINGS if s.key != SEEDS),
+            *(key for keys in AGENT_SETTINGS.values() for key in keys),
+        )
+    )
 )
 """Tags and params that change results: runs of one environment that differ in any of them
-are never averaged together (:func:`comparable_runs` puts them into separate groups)."""
+are never averaged together (:func:`comparable_runs` puts them into separate groups).  They
+include every setting the agents of a column share and every agent's own
+(:mod:`analysis.shared`); a key ending in ``.`` stands for every param under it
+(:func:`setting_keys`)."""
+
+
+def setting_keys(runs: pd.DataFrame) -> list[str]:
+    """:data:`SETTINGS` with each key ending in ``.`` replaced by the params under it that
+    ``runs`` have (``weights.hinf_f.`` → ``weights.hinf_f.w_p.num``, …)."""
+    params = [c.removeprefix("params.") for c in runs.columns if c.startswith("params.")]
+    out: list[str] = []
+    for key in SETTINGS:
+        out.extend(sorted(p for p in params if p.startswith(key)) if key.endswith(".") else [key])
+    return list(dict.fromkeys(out))
 
 
 class EmptyStoreError(RuntimeError):
@@ -425,11 +442,10 @@ def comparable_runs(runs: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
         runs["settings"] = pd.Series(dtype=object)
         return runs, notes
     runs["env"] = environment(runs)
-    values = {key: setting_values(runs, key) for key in SETTINGS}
+    keys = setting_keys(runs)
+    values = {key: setting_values(runs, key) for key in keys}
     cells = [runs["env"], runs["controller"]]
-    varying = [
-        key for key in SETTINGS if (values[key].groupby(cells).nunique(dropna=False) > 1).any()
-    ]
+    varying = [key for key in keys if (values[key].groupby(cells).nunique(dropna=False) > 1).any()]
     runs["settings"] = [", ".join(f"{key}={values[key][i]}" for key in varying) for i in runs.index]
     key = ["env", "settings", "controller", "seed"]
     counts = runs.groupby(key, dropna=False).size()
@@ -461,7 +477,7 @@ def where(runs: pd.DataFrame, conditions: Sequence[str]) -> pd.DataFrame:
             raise WhereError(f"--where {cond!r}: expected KEY=VALUE, e.g. train.episodes=2000")
         column = key if key in runs.columns else f"params.{key}"
         if column not in runs.columns:
-            known = [*TAG_COLUMNS, *SETTINGS]
+            known = [*TAG_COLUMNS, *SETTINGS[:8]]
             raise WhereError(
                 f"--where {cond}: no run has a tag or param {key!r}; e.g. {', '.join(known)}"
             )

@@ -68,13 +68,19 @@ AGENT_SETTINGS: dict[str, tuple[str, ...]] = {
         "train.discount",
         "weights.target.gamma_eff",
         "weights.target.step_scale",
-        "weights.reset_integrator",
+        "weights.reset_integrator.",
+        "weights.replay.",
+        "weights.h2.",
+        "weights.hinf.",
+        "weights.hinf_f.",
+        "weights.theta_bounds.",
     ),
 }
 """Settings that belong to one kind of agent and are not compared between agents: Double
 DQN's replay buffer, minibatch, target network, α and γ (``controller.*``, docs/ddqn.md);
 a controlled agent's design, its weights (``weights.<controller>.*``) and its learning
-target (α, γ and the synthesised target, docs/synthesis.md)."""
+target (α, γ and the synthesised target, docs/synthesis.md).  A key ending in ``.`` stands
+for every param under it (:func:`analysis.runs.setting_keys`)."""
 
 
 def agent_kind(controller: str) -> str:

@@ -173,6 +173,33 @@ def test_comparable_runs_never_mix_settings(store_uri: str) -> None:
     assert any("differ in network.width: 2 groups" in n and "--where" in n for n in notes)
 
 
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [
+        ("controller.lr", "0.001"),  # Double DQN's α
+        ("controller.target_update", "1"),
+        ("controller.batch_size", "1"),
+        ("env.rbf_centres", "4"),
+        ("train.eps_end", "0.05"),
+        ("weights.reset_integrator.hinf", "False"),
+        ("weights.hinf.w_p.num", "[0.5]"),
+    ],
+)
+def test_comparable_runs_split_on_every_agent_and_shared_setting(
+    store_uri: str, key: str, value: str
+) -> None:
+    """A run that differs from the others of its cell only in an agent's own setting or in a
+    setting the agents of a column share is never averaged with them."""
+    runs = RunStore(store_uri, EXPERIMENT).runs()
+    assert f"params.{key}" in runs.columns
+    other = runs.iloc[[0]].assign(run_id="other", start_time=runs["start_time"].max() + 1)
+    other[f"params.{key}"] = value
+    kept, notes = comparable_runs(pd.concat([runs, other], ignore_index=True))
+    assert len(kept) == len(runs) + 1, key  # same seed, another setting: not a rerun
+    assert kept.loc[kept["run_id"] == "other", "settings"].item().startswith(f"{key}={value}")
+    assert any(key in n and "never averaged together" in n for n in notes)
+
+
 def test_table_equals_direct_computation_and_bolds_best(
     store_uri: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -404,7 +431,8 @@ def test_caption_names_every_shared_setting_that_differs(
     assert "Not like for like" in out
     assert "Acrobot: env.normalize differs: ddqn false; hinf_f true" in out
     assert "Cartpole: seed differs: ddqn 0–1; hinf_f 0" in out
-    assert "Mountain car: env.rbf_centres differs: ddqn 6 or null; hinf_f 6" in out
+    # Double DQN's Mountain car runs with and without the features: two groups, never averaged
+    assert "2 groups of settings" in out and "6 or null" not in out
     diffs = column_differences(RunStore(column_store, EXPERIMENT).runs())
     assert {(d.env, d.key) for d in diffs} == {
         ("acrobot", "env.normalize"),
