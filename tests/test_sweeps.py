@@ -54,7 +54,8 @@ def test_sweep_and_launcher_configs_compose(sweep: str, launcher: str) -> None:
     params = cfg.hydra.sweeper.params
     # every environment and controller, the longest jobs (Mountain car, Double DQN) first
     assert params.env.split(",") == ["mountaincar", "acrobot", "cartpole"]
-    assert params.controller.split(",") == ["ddqn", "h2", "hinf", "hinf_f"]
+    agents = ["ddqn"] if sweep == "like_online" else ["ddqn", "h2", "hinf", "hinf_f"]
+    assert params.controller.split(",") == agents
     assert cfg.tracking.skip_finished and cfg.train.population >= 2
 
 
@@ -69,6 +70,26 @@ def test_the_like_for_like_sweep_takes_each_agents_tuned_preset(env: str, contro
     assert cfg.extra.tuned.budget.episodes == episode_budget(TuneSettings(), cap)
     assert cfg.extra.tuned.budget.trials == 20
     assert cfg.train.episodes == 2000 and cfg.network.width == 2500
+
+
+@pytest.mark.parametrize("env", ["cartpole", "acrobot", "mountaincar"])
+def test_the_online_sweep_gives_double_dqn_the_designs_data_and_budget(env: str) -> None:
+    """sweeps/like_online.yaml: Double DQN learning from each transition once, in temporal
+    order, with the settings of its own study of the like-for-like presets' budget."""
+    cfg = _compose_sweep("like_online", [f"env={env}", "controller=ddqn"], hydra=False)
+    validate(OmegaConf.to_object(cfg))
+    assert cfg.weights.name == f"tuned_{env}-ddqn_online" and cfg.env.name == env
+    c = cfg.controller
+    assert (c.buffer_size, c.batch_size, c.train_freq, c.learning_starts) == (1, 1, 1, 1)
+    like = _compose_sweep("like", [f"env={env}", "controller=ddqn"], hydra=False)
+    assert cfg.extra.tuned.budget == like.extra.tuned.budget
+    assert (cfg.seed, cfg.train.population, cfg.train.episodes, cfg.network.width) == (
+        like.seed,
+        like.train.population,
+        like.train.episodes,
+        like.network.width,
+    )
+    assert cfg.tracking.experiment != like.tracking.experiment  # a table of its own
 
 
 def test_every_job_of_the_paper_sweep_is_a_valid_configuration() -> None:
