@@ -39,13 +39,7 @@ from mlflow.tracking import MlflowClient
 
 from analysis.shared import AGENT_SETTINGS, SEEDS, SHARED_SETTINGS
 from cdqn import records
-from cdqn.config import (
-    TARGET_CONTROLLERS,
-    TARGET_FIELDS,
-    TrackingConfig,
-    resolve_tracking_uri,
-    sqlite_file,
-)
+from cdqn.config import TrackingConfig, resolve_tracking_uri, sqlite_file
 
 DEFAULT_URI = TrackingConfig.uri
 """The training default (``sqlite:///mlflow.db`` in the working folder)."""
@@ -62,40 +56,14 @@ TAG_COLUMNS = (T.ENV, T.ENV_ID, T.CONTROLLER, T.SEED, T.GIT_COMMIT, T.DESIGN_SOU
 RUN_KEY = ("run_id", "env", "controller", "seed", "settings")
 """The columns that identify a run in the per-episode table."""
 
-SETTINGS = tuple(
-    dict.fromkeys(
-        (
-            "design_source",
-            "controller.design",
-            "controller.synthesis.ntk_bounds",
-            "network.width",
-            "network.dtype",
-            "train.episodes",
-            "train.lr",
-            "train.discount",
-            "train.eps_dec",
-            "train.eps_schedule",
-            "train.bootstrap_terminal",
-            "env.max_episode_steps",
-            "env.obs_indices",
-            "env.normalize",
-            "weights.target.gamma_eff",
-            "weights.target.step_scale",
-            "weights.target.rho_cap",
-            *(
-                f"weights.controller_target.{controller}.{key}"
-                for controller in TARGET_CONTROLLERS
-                for key in TARGET_FIELDS
-            ),
-            "controller.discount",
-            *(s.key for s in SHARED_SETTINGS if s.key != SEEDS),
-            *(key for keys in AGENT_SETTINGS.values() for key in keys),
-        )
-    )
+SETTINGS = (
+    "train.bootstrap_terminal",
+    *(s.key for s in SHARED_SETTINGS if s.key != SEEDS),
+    *(key for keys in AGENT_SETTINGS.values() for key in keys),
 )
 """Tags and params that change results: runs of one environment that differ in any of them
-are never averaged together (:func:`comparable_runs` puts them into separate groups).  They
-include every setting the agents of a column share and every agent's own
+are never averaged together (:func:`comparable_runs` puts them into separate groups): the
+terminal bootstrap, every setting the agents of a column share and every agent's own
 (:mod:`analysis.shared`); a key ending in ``.`` stands for every param under it
 (:func:`setting_keys`)."""
 

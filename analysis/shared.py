@@ -64,10 +64,11 @@ AGENT_SETTINGS: dict[str, tuple[str, ...]] = {
     "controlled": (
         "controller.design",
         "design_source",
+        "controller.synthesis.ntk_bounds",
         "train.lr",
         "train.discount",
-        "weights.target.gamma_eff",
-        "weights.target.step_scale",
+        "weights.target.",
+        "weights.controller_target.",
         "weights.reset_integrator.",
         "weights.replay.",
         "weights.h2.",
