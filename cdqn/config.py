@@ -335,7 +335,8 @@ class ControllerTargets:
 class ReplayConfig:
     """Episodic replay (paper Sec. 4, remark on replay; research code on Acrobot): after an
     episode that qualifies, its final transitions pass again through the same controlled
-    update, ``repeats`` times, in temporal order."""
+    update, ``repeats`` times, in temporal order.  Sampled replay (``sample``): after each
+    step, transitions drawn from the recent past pass through it too."""
 
     repeats: int = 0
     """Passes over the replayed transitions after a qualifying episode (0: off)."""
@@ -347,12 +348,20 @@ class ReplayConfig:
     truncated (the time limit), any."""
     min_return: float | None = None
     """Only episodes whose return is at least this qualify (null: no bound)."""
+    sample: int = 0
+    """Sampled replay, a departure from the paper's online learning (0: off): after each
+    environment step, this many transitions drawn uniformly (with replacement) from the last
+    ``buffer`` pass through the same controlled update (:mod:`cdqn.agents.replay`)."""
+    buffer: int = 50_000
+    """Transitions sampled replay draws from (the most recent; Double DQN's buffer size)."""
 
     def check(self, key: str) -> list[str]:
         """Problems of the replay settings, one line each (empty: none)."""
         return failed(
             [
                 (self.repeats >= 0, f"{key}.repeats={self.repeats}: must be >= 0 (0: off)"),
+                (self.sample >= 0, f"{key}.sample={self.sample}: must be >= 0 (0: off)"),
+                (self.buffer >= 1, f"{key}.buffer={self.buffer}: must be >= 1 (transitions)"),
                 (
                     self.last is None or self.last >= 1,
                     f"{key}.last={self.last}: must be >= 1 or null (the whole episode)",

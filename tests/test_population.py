@@ -175,13 +175,20 @@ def _population(overrides: list[str], seeds: list[int]) -> list[Member]:
             "hinf",
             ["weights.replay.repeats=2", "weights.replay.when=truncated", "weights.replay.last=3"],
         ),
+        # sampled replay, its buffer wrapping around, beside episodic replay
+        (
+            "cartpole",
+            "hinf_f",
+            ["weights.replay.sample=2", "weights.replay.buffer=50", "weights.replay.repeats=1"],
+        ),
+        ("mountaincar", "hinf", ["weights.replay.sample=1", "network.dtype=float32"]),
     ],
 )
 def test_population_members_step_exactly_as_single_runs(
     env: str, controller: str, extra: list[str]
 ) -> None:
     """Every per-step signal (Q1, Q2, u, x_e, Θ1, Θ2, loss) and every return of a member
-    equals the single run of its seed, bit for bit (episodic replay included)."""
+    equals the single run of its seed, bit for bit (episodic and sampled replay included)."""
     overrides = [*BASE, f"env={env}", f"controller={controller}", *extra]
     if env == "acrobot":
         overrides += ["train.episodes=2"]

@@ -62,8 +62,13 @@ def store(tmp_path_factory: pytest.TempPathFactory) -> str:
 
 @pytest.mark.parametrize(
     "overrides",
-    [CONTROLLED, DDQN, [*DDQN, "network.dtype=float32"]],
-    ids=["hinf", "ddqn", "ddqn-float32"],
+    [
+        CONTROLLED,
+        [*CONTROLLED, "weights.replay.sample=2", "weights.replay.buffer=64"],
+        DDQN,
+        [*DDQN, "network.dtype=float32"],
+    ],
+    ids=["hinf", "hinf-sampled", "ddqn", "ddqn-float32"],
 )
 def test_signal_checkpoint_resume_equals_uninterrupted(
     store: str, overrides: list[str], signal_at: Callable[..., None]
@@ -235,6 +240,8 @@ def test_sigterm_to_population_process_then_resume_equals_uninterrupted(tmp_path
             ],
         ),
         (31, DDQN),  # a Double DQN population: buffers, target networks, cached passes
+        # sampled replay: each member's buffer and its sampling stream
+        (51, [*CONTROLLED, "weights.replay.sample=2", "weights.replay.buffer=64"]),
         # ε per episode: the draws made ahead but not yet taken are part of the checkpoint
         (41, [*CONTROLLED, "train.eps_schedule=episode", "train.eps_dec=0.05"]),
     ],

@@ -16,9 +16,11 @@ from hydra import compose, initialize_config_dir
 from mlflow.tracking import MlflowClient
 from omegaconf import DictConfig, OmegaConf
 
+from cdqn.cli import check_overrides
 from cdqn.control.target import stable_over_box
 from cdqn.training.batching import batchable
 from cdqn.training.store import place_migrated
+from cdqn.tune import check_tune
 from cdqn.tuning.objective import area, ma100, padded
 from cdqn.tuning.pruner import EpisodeMedianPruner
 from cdqn.tuning.report import summary_text
@@ -738,6 +740,26 @@ def test_conditional_dimensions_are_sampled_only_when_their_condition_holds() ->
     assert seen == {"episode", "random_action"}
 
 
+def test_a_space_file_of_ones_own_adds_sampled_replay(tmp_path: Path) -> None:
+    """docs/tuning.md: a space file in the user's folder adds a dimension to the design's
+    space; the command line passes the check, and a trial's specification reaches
+    ``weights.replay.sample``."""
+    (tmp_path / "space").mkdir()
+    (tmp_path / "space" / "hinf_f_sampled.yaml").write_text(
+        "defaults: [hinf_f, _self_]\nsample: {path: weights.replay.sample, choices: [1, 2]}\n"
+    )
+    overrides = [f"hydra.searchpath=[file://{tmp_path}]", "space@tune.space=hinf_f_sampled",
+                 "controller=hinf_f"]  # fmt: skip
+    assert check_overrides(overrides, config_name="tune", check=check_tune) == []
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        cfg = compose("tune", overrides=overrides)
+    space = OmegaConf.to_object(cfg.tune).space
+    assert {"sample", "w_p", "gamma_eff"} <= set(space)
+    trial = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0)).ask()
+    params = sample(trial, space)
+    assert apply(cfg, space, params).weights.replay.sample == params["sample"] in (1, 2)
+
+
 def test_radial_features_are_offered_only_where_the_observation_allows_them() -> None:
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
         space = OmegaConf.to_object(compose("tune").tune).space
@@ -876,7 +898,8 @@ def test_both_agents_tuned_alike_compared_and_their_presets_reproduce_the_settin
                 assert seed["learned_per_step"] == pytest.approx(32 / train_freq)
                 assert "theta1_outside_box" not in seed and record["design"] is None
             else:
-                assert seed["learned_per_step"] >= 1.0
+                # a TD step, the sampled replay's updates and any episodic replay's
+                assert seed["learned_per_step"] >= 1.0 + summary["best_params"].get("sample", 0)
                 assert 0.0 <= seed["theta1_outside_box"] <= 1.0
                 # the box the study measured and the design was certified on
                 assert record["design"]["theta1"] == list(tuned_box(summary).theta1)

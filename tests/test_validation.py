@@ -57,6 +57,8 @@ BAD = [
     (["resume="], ["resume=''", "give the MLflow run id", "resume=<run_id>"]),
     (["env.id=Taxi-v3"], ["env.id='Taxi-v3'", "not a registered", "did you mean Taxi-v4?"]),
     (["env.rbf_centres=1"], ["env.rbf_centres=1", "must be >= 2"]),
+    (["weights.replay.sample=-1"], ["weights.replay.sample=-1", ">= 0 (0: off)"]),
+    (["weights.replay.buffer=0"], ["weights.replay.buffer=0", ">= 1"]),
     (["env=mountaincar", "env.rbf_width=0"], ["env.rbf_width=0", "> 0"]),
     (
         ["env.eps_schedule=time"],

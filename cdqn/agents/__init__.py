@@ -8,7 +8,7 @@ import numpy as np
 
 from cdqn.agents.base import Agent, StepRecord
 from cdqn.agents.controlled import ControlledAgent
-from cdqn.config import ControllerConfig, TrainConfig
+from cdqn.config import ControllerConfig, ReplayConfig, TrainConfig
 from cdqn.control.setup import ControllerSetup
 from cdqn.network import QNetwork
 
@@ -33,10 +33,15 @@ def make_agent(
     net: QNetwork,
     setup: ControllerSetup,
     rng: np.random.Generator,
+    replay: ReplayConfig | None = None,
 ) -> Agent:
-    """The agent of ``cfg.name``: Double DQN or the controlled agent with ``setup``."""
+    """The agent of ``cfg.name``: Double DQN or the controlled agent with ``setup`` (and the
+    sampled replay of ``replay``, :mod:`cdqn.agents.replay`)."""
     if cfg.name == "ddqn":
         from cdqn.agents.ddqn import DDQNAgent
 
         return DDQNAgent(net, cfg, train, rng)
-    return ControlledAgent(net, setup.controller, train, cfg.reset_integrator, rng)
+    sample, buffer = (0, 1) if replay is None else (replay.sample, replay.buffer)
+    return ControlledAgent(
+        net, setup.controller, train, cfg.reset_integrator, rng, sample=sample, buffer=buffer
+    )

@@ -1,7 +1,8 @@
 """Controlled deep Q-learning: online semi-gradient TD with a control reward u(t).
 
-No target network, no random replay: each transition is used once, in temporal order.
-Per step (paper Sec. 4, Δt = α):
+No target network, no random replay: each transition is used once, in temporal order
+(episodic and sampled replay, both off by default, add updates: :mod:`cdqn.agents.episodic_replay`,
+:mod:`cdqn.agents.replay`).  Per step (paper Sec. 4, Δt = α):
 
 1. ``Q1 = Q(s, a)``, ``Q2 = max_a' Q(s', a')``, and the NTK values
    ``Θ1 = Θ((s,a),(s,a))``, ``Θ2 = Θ((s,a),(s',a'))`` in closed form;
@@ -25,6 +26,7 @@ import numpy as np
 import torch
 
 from cdqn.agents.base import EpsilonGreedy, StepRecord
+from cdqn.agents.replay import ReplayBuffer
 from cdqn.config import TrainConfig
 from cdqn.control.runtime import RuntimeController, ScheduledLQR, StateSpace, StaticGain
 from cdqn.network import FastTwoLayer, Forward, QNetwork, gradient_step
@@ -68,6 +70,8 @@ class ControlledAgent:
         cfg: TrainConfig,
         reset_integrator: bool,
         rng: np.random.Generator,
+        sample: int = 0,
+        buffer: int = 50_000,
     ) -> None:
         self.net = net
         self.fast = FastTwoLayer(net)
@@ -80,6 +84,11 @@ class ControlledAgent:
         self.explorer = EpsilonGreedy(cfg, net.spec.n_actions, rng)
         self.x_e = 0.0
         self._cached: Forward | None = None
+        self.sample = sample
+        """Sampled replay's updates per step (:mod:`cdqn.agents.replay`; 0: off)."""
+        self.memory = (
+            ReplayBuffer(buffer, net.spec.n_obs, rng.spawn(1)[0]) if sample > 0 else None
+        )  # its own stream (the seed's first child): the exploration's stays as without it
 
     @property
     def epsilon(self) -> float:
@@ -133,6 +142,24 @@ class ControlledAgent:
                     bool(tail.terminated[i]),
                 )
 
+    def replay_sampled(
+        self, obs: np.ndarray, action: int, reward: float, next_obs: np.ndarray, terminated: bool
+    ) -> Iterator[StepRecord]:
+        """Sampled replay after the step on this transition (:mod:`cdqn.agents.replay`): the
+        transition enters the buffer, then :attr:`sample` transitions drawn from it pass
+        through :meth:`update`."""
+        assert self.memory is not None
+        self.memory.add(obs, action, reward, next_obs, terminated)
+        batch = self.memory.sample(self.sample)
+        for i in range(self.sample):
+            yield self.update(
+                batch.obs[i],
+                int(batch.actions[i]),
+                float(batch.rewards[i]),
+                batch.next_obs[i],
+                bool(batch.terminated[i]),
+            )
+
     def _autograd_step(
         self, obs: np.ndarray, action: int, reward: float, q_next: float, u: float
     ) -> float:
@@ -154,6 +181,7 @@ class ControlledAgent:
             "epsilon": self.explorer.epsilon,
             "rng": self.explorer.rng.bit_generator.state,
             "controller": getattr(self.controller, "x", None),
+            "memory": None if self.memory is None else self.memory.state_dict(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -164,6 +192,8 @@ class ControlledAgent:
         if state["controller"] is not None:
             assert isinstance(self.controller, StateSpace)  # the one controller with a state
             self.controller.x[:] = state["controller"]
+        if self.memory is not None:
+            self.memory.load_state_dict(state["memory"])
 
 
 def _static_gains(controller: RuntimeController) -> tuple[float, float, float] | None:

@@ -24,6 +24,9 @@ the nonzero inputs of ``s`` and ``s'`` only, as every product with ``x`` in
 ``W_1`` in between; :meth:`ControlledPopulation.flush` applies what is pending before the
 parameters are read from outside.  Exploration is drawn ahead in blocks
 (:func:`cdqn.agents.base.explore_ahead`); it depends on nothing but each member's generator.
+Sampled replay (:mod:`cdqn.agents.replay`) is a third compiled call after the update
+(:func:`_sampled_kernel`), from each member's buffer with the indices its own generator
+draws as the single run's :class:`~cdqn.agents.replay.ReplayBuffer` draws them.
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ from numba import njit
 
 from cdqn.agents.base import LoopState, decide, draw_ahead, explore_ahead
 from cdqn.agents.episodic_replay import Transitions
+from cdqn.agents.replay import StackedReplay
 from cdqn.config import TrainConfig
 from cdqn.control.kernels import scheduled_lqr_step, state_space_step, static_gain_u
 from cdqn.control.runtime import (
@@ -310,6 +314,8 @@ class ControlledPopulation:
         cfg: TrainConfig,
         reset_integrator: bool,
         rngs: list[np.random.Generator],
+        sample: int = 0,
+        buffer: int = 50_000,
     ) -> None:
         self.net = StackedTwoLayer.from_networks(nets)
         self.spec = spec = nets[0].spec
@@ -340,6 +346,11 @@ class ControlledPopulation:
         self.actions = np.empty(k, dtype=np.int64)
         self.flags = np.zeros(k, dtype=np.int8)
         self.loss_seen = np.zeros(k, dtype=np.bool_)
+        self.sample = sample
+        """Sampled replay's updates per step (:mod:`cdqn.agents.replay`; 0: off)."""
+        self.memory = StackedReplay(k, buffer, spec.n_obs) if sample > 0 else None
+        self.samplers = [rng.spawn(1)[0] for rng in rngs] if sample > 0 else []
+        """Each member's sampling stream, the single run's (its seed's first child)."""
 
     def __len__(self) -> int:
         return len(self.x_e)
@@ -408,9 +419,38 @@ class ControlledPopulation:
             tuple(self.controller.view), self.x_e, q_limit,
         )  # fmt: skip
 
+    def replay_sampled(self, obs: np.ndarray, actions: np.ndarray, step: VectorStep,
+                       q_limit: float) -> np.ndarray:  # fmt: skip
+        """Sampled replay of every member after the step from ``obs`` (:mod:`cdqn.agents.replay`,
+        :func:`_sampled_kernel`): the transitions enter the buffers, each member draws
+        :attr:`sample` of its own.  Per member, the index of the replayed update that failed
+        the divergence test, or −1."""
+        assert self.memory is not None
+        mem, k = self.memory, len(self.x_e)
+        rows = np.arange(k)
+        pos = mem.pos
+        mem.obs[rows, pos], mem.next_obs[rows, pos] = obs, step.obs
+        mem.actions[rows, pos], mem.rewards[rows, pos] = actions, step.reward
+        mem.terminated[rows, pos] = step.terminated
+        mem.pos = (pos + 1) % mem.capacity
+        mem.size = np.minimum(mem.size + 1, mem.capacity)
+        draws = zip(self.samplers, mem.size, strict=True)
+        idx = np.stack([g.integers(n, size=self.sample) for g, n in draws])
+        failed = np.full(k, -1, dtype=np.int64)
+        _sampled_kernel(
+            tuple(self.net.params), tuple(self.passes), tuple(self.scratch),
+            tuple(self.deferred), (mem.obs, mem.actions, mem.rewards, mem.next_obs,
+            mem.terminated), idx, tuple(self.settings), tuple(self.controller.view), self.x_e,
+            q_limit, failed,
+        )  # fmt: skip
+        return failed
+
     def select(self, keep: np.ndarray) -> None:
         """Keep only the members ``keep`` (indices, in that order)."""
         self.flush()
+        if self.memory is not None:
+            self.memory.select(keep)
+            self.samplers = [self.samplers[j] for j in keep]
         self.g, self.sx, self.pending = self.g[keep], self.sx[keep], self.pending[keep]
         self.net.select(keep)
         self.controller.select(keep)
@@ -433,6 +473,8 @@ class ControlledPopulation:
             "loss_seen": bool(self.loss_seen[i]),
             "controller": self.controller.state_dict(i),
             "explore": self.explore.state_dict(i),
+            "memory": None if self.memory is None
+            else self.memory.state_dict(i, self.samplers[i]),
         }  # fmt: skip
 
     def load_state_dict(self, i: int, state: dict[str, Any]) -> None:
@@ -444,6 +486,8 @@ class ControlledPopulation:
         self.x_e[i], self.loss_seen[i] = state["x_e"], state["loss_seen"]
         self.controller.load_state_dict(i, state["controller"])
         self.explore.load_state_dict(i, state["explore"])
+        if self.memory is not None:
+            self.memory.load_state_dict(i, state["memory"], self.samplers[i])
 
     def network(self, i: int) -> QNetwork:
         """Member ``i``'s network as a :class:`QNetwork`."""
@@ -612,3 +656,29 @@ def _replay_kernel(k, net, passes, scratch, pending, tail, repeats, settings, co
                 return -(count + 1)
             count += 1
     return count
+
+
+@njit(cache=True)
+def _sampled_kernel(net, passes, scratch, pending, memory, idx, settings, controller, x_e,
+                    q_limit, failed):  # fmt: skip
+    """Sampled replay (:meth:`ControlledPopulation.replay_sampled`): member ``k``'s
+    transitions ``idx[k]`` of its buffer ``memory`` (``obs, actions, rewards, next_obs,
+    terminated``, each ``(K, capacity, …)``) pass in order through :func:`_controlled_step`
+    after the forward pass at their ``obs``, as in :func:`_replay_kernel`.  ``failed[k]``:
+    the index of the update that failed the divergence test (the member stops there), or
+    left at −1.  Bundles as in :func:`_update_kernel`."""
+    n, f, s2 = Params(*net), StackedForward(*passes), StepScratch(*scratch)
+    d, c, stp = StackedPending(*pending), ControllerView(*controller), StepSettings(*settings)
+    obs, actions, rewards, next_obs, terminated = memory
+    for k in range(idx.shape[0]):
+        for j in range(idx.shape[1]):
+            i = idx[k, j]
+            _pass_at(k, obs[k, i], n, f, d)
+            for m in range(s2.x.shape[0]):
+                s2.x[m] = next_obs[k, i, m]
+            q1, q2, u, xe, theta1, theta2, loss = _controlled_step(
+                k, n, f, s2, d, actions[k, i], rewards[k, i], terminated[k, i] != 0.0, stp, c, x_e
+            )
+            if not (math.isfinite(u + xe + loss) and max(abs(q1), abs(q2)) <= q_limit):
+                failed[k] = j
+                break

@@ -1,4 +1,15 @@
-"""Uniform replay buffer for the Double DQN baseline."""
+"""Uniform replay buffer: Double DQN's minibatches, and the controlled agents' sampled replay.
+
+Sampled replay (``weights.replay.sample = m``, off by default) departs from the paper's
+online learning, where each transition is used once, in temporal order (paper Sec. 4).
+After each environment step, the step's transition enters a buffer of the last
+``weights.replay.buffer`` transitions, and ``m`` transitions drawn from it uniformly with
+replacement (:meth:`ReplayBuffer.sample`, the run's own generator) pass, one after another,
+through the same controlled update as a step: the integrator ``x_e`` and the controller's
+state continue, the exploration does not move, and no signal row is written.  Each replayed
+update passes the divergence test of a step.  The NTK model (paper Eq. controlled_Q1_hinf)
+then describes each update at its own transition.
+"""
 
 from __future__ import annotations
 

@@ -53,7 +53,7 @@ def build(conf: Config, env: gym.Env) -> Job:
     setup = make_controller(
         conf.controller, conf.weights, conf.train.discount, conf.train.lr, box=box
     )
-    agent = make_agent(conf.controller, conf.train, net, setup, rng)
+    agent = make_agent(conf.controller, conf.train, net, setup, rng, conf.weights.replay)
     return Job(conf, env, setup, net, agent, rng)
 
 
@@ -91,6 +91,7 @@ def build_population(
     if conf.controller.name == "ddqn":
         return DDQNPopulation(nets, conf.controller, conf.train, rngs), make_vector_env(envs)
     agent = ControlledPopulation(
-        nets, setup.controller, conf.train, conf.controller.reset_integrator, rngs
-    )
+        nets, setup.controller, conf.train, conf.controller.reset_integrator, rngs,
+        sample=conf.weights.replay.sample, buffer=conf.weights.replay.buffer,
+    )  # fmt: skip
     return agent, make_vector_env(envs)

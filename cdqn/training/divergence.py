@@ -63,11 +63,11 @@ def check_replayed(rec: StepRecord, q_limit: float, episode: int, t: int) -> Non
         diagnose(rec, q_limit, episode, t)
 
 
-def replay_failed(update: int, episode: int, t: int) -> DivergenceError:
-    """The error of update ``update`` of an episodic replay that failed the test (in a
-    compiled kernel that reports only which update failed)."""
+def replay_failed(update: int, episode: int, t: int, kind: str = "episodic") -> DivergenceError:
+    """The error of update ``update`` of an episodic (or ``kind``) replay that failed the
+    test (in a compiled kernel that reports only which update failed)."""
     return DivergenceError(
-        f"update {update} of episodic replay failed the divergence test", episode, t
+        f"update {update} of {kind} replay failed the divergence test", episode, t
     )
 
 

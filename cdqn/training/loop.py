@@ -171,7 +171,8 @@ def train(
     everything up to that step is in ``signals``.  ``should_stop`` is asked after each
     episode; when it answers True the loop returns early, at an episode boundary.
     ``replay``: episodic replay of the controlled agents
-    (:mod:`cdqn.agents.episodic_replay`) after each qualifying episode.  ``box``: the
+    (:mod:`cdqn.agents.episodic_replay`) after each qualifying episode; an agent built with
+    sampled replay (:mod:`cdqn.agents.replay`) replays after each step.  ``box``: the
     design's NTK box, for the per-episode ``theta1_outside_box``, ``ratio_below_box`` and
     ``ratio_above_box``.
     """
@@ -212,6 +213,11 @@ class _Episodes:
     loss_seen: bool = False
     """A finite loss was seen (a NaN loss before that means "no update yet")."""
 
+    def __post_init__(self) -> None:
+        sampled = getattr(self.agent, "memory", None) is not None
+        self.replay_sampled = getattr(self.agent, "replay_sampled", None) if sampled else None
+        """The agent's sampled replay after each step (:mod:`cdqn.agents.replay`), if on."""
+
     def episode(self, state: TrainState) -> EpisodeStats:
         """Play episode ``state.episode`` to its end and advance ``state``; its metrics."""
         env, agent, signals, tail, q_limit = (
@@ -231,6 +237,10 @@ class _Episodes:
                 tail.append(obs, action, float(reward), next_obs, bool(terminated))
             signals.append(ep, t, float(reward), rec)
             self.loss_seen = check_step(rec, q_limit, self.loss_seen, ep, t)
+            if self.replay_sampled is not None:
+                done = bool(terminated)
+                for sampled_rec in self.replay_sampled(obs, action, float(reward), next_obs, done):
+                    check_replayed(sampled_rec, q_limit, ep, t)
             ret += float(reward)
             obs = next_obs
             if terminated or truncated:

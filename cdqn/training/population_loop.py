@@ -263,6 +263,8 @@ class _Batch:
         self.ep = np.array([m.episode for m in members], dtype=float)
         self.staging = _Staging(len(members))
         self.tail = self._tail() if replay is not None and replay.repeats > 0 else None
+        self.sampled = getattr(agent, "memory", None) is not None
+        """Whether the members replay sampled transitions after each step."""
 
     def _tail(self) -> PopulationTail:
         """The transitions of each member's episode in progress (episodic replay)."""
@@ -304,20 +306,38 @@ class _Batch:
         flagged = agent.update(actions, out, loop)
         if self.tail is not None:
             self.tail.append(self.obs, actions, out.reward, out.obs, out.terminated)
+        failed = None
+        if self.sampled:
+            assert isinstance(agent, ControlledPopulation)
+            failed = agent.replay_sampled(self.obs, actions, out, ends.q_limit)
         self.obs = out.obs
         leaving: list[int] = []
-        if flagged:
+        if flagged or (failed is not None and failed.max() >= 0):
             flags = agent.flags
             for j in np.flatnonzero(flags == CHECK).tolist():  # the single run's exact test
                 if self._checked(j, rows[j], ends.q_limit):
                     flags[j] = DONE if out.terminated[j] or out.truncated[j] else 0
                 else:
                     leaving.append(j)
+            if failed is not None:
+                self._sampled_failures(failed, flags, leaving)
             for j in np.flatnonzero(flags == DONE).tolist():
                 end = (bool(out.terminated[j]), bool(out.truncated[j]), float(self.ret[j]))
                 if self._episode_end(j, end, ends, bar):
                     leaving.append(j)
         return leaving
+
+    def _sampled_failures(self, failed: np.ndarray, flags: np.ndarray, leaving: list[int]) -> None:
+        """Members whose sampled replay (:mod:`cdqn.agents.replay`) failed the divergence
+        test after a healthy step leave the batch FAILED, without their episode's end."""
+        for j in np.flatnonzero(failed >= 0).tolist():
+            if j in leaving:  # the step itself failed first, as in a single run
+                continue
+            m = self.members[j]
+            err = replay_failed(int(failed[j]), m.episode, int(self.t[j] - 1), "sampled")
+            m.status, m.reason = "FAILED", failure_reason(err)
+            flags[j] = 0
+            leaving.append(j)
 
     def _checked(self, j: int, row: np.ndarray, q_limit: float) -> bool:
         """The divergence check of member ``j``'s step (flagged by the kernel's cheap test);

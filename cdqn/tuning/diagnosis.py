@@ -7,7 +7,8 @@ the comparison needs to say why one agent ends below another (``evaluation/seeds
 * ``steps``: the environment steps the seed played, and ``learned_per_step``, the
   transitions each of them put into an update: Double DQN's ``batch_size / train_freq``
   (a minibatch every ``train_freq`` steps), a controlled agent's one TD step plus its
-  episodic replay's updates per step (paper Sec. 4 takes one);
+  sampled replay's ``weights.replay.sample`` and its episodic replay's updates per step
+  (paper Sec. 4 takes one);
 * ``epsilon``: the exploration rate ε at the end;
 * for a design, ``theta1_outside_box``, ``ratio_above_box``, ``ratio_below_box``: the share of
   the steps of the last 100 episodes whose Θ1 left the NTK box the design was certified on,
@@ -40,12 +41,14 @@ BOX_BOUNDS = tuple(SERIES_PREFIX + name for name in BOX_SERIES)
 """Metric keys of the NTK box a run logged: Θ1 lower, upper, Θ2/Θ1 lower, upper."""
 
 
-def seed_record(tracker: Any, member: Any, final: float, controller: Any) -> dict[str, Any]:
+def seed_record(
+    tracker: Any, member: Any, final: float, controller: Any, sample: int = 0
+) -> dict[str, Any]:
     """What one evaluation member (a :class:`cdqn.training.result.RunResult`) did; ``final``
     its final score as the comparison counts it (a diverged member's missing episodes at its
     lowest return, :func:`cdqn.tuning.objective.padded`).  Transitions per step: Double
-    DQN's ``batch_size / train_freq``; a design's one TD step and its episodic replay's
-    updates (module docstring)."""
+    DQN's ``batch_size / train_freq``; a design's one TD step, its ``sample`` sampled
+    replay's and its episodic replay's updates (module docstring)."""
     run, steps = member.run_id, int(member.steps)
     record: dict[str, Any] = {"final": float(final), "steps": steps,
                               "epsilon": float(member.epsilon)}  # fmt: skip
@@ -53,7 +56,7 @@ def seed_record(tracker: Any, member: Any, final: float, controller: Any) -> dic
         record["learned_per_step"] = controller.batch_size / controller.train_freq
         return record
     replayed = sum(tracker.history(run, Metric.REPLAY_UPDATES))
-    record["learned_per_step"] = 1.0 + replayed / steps if steps else math.nan
+    record["learned_per_step"] = 1.0 + sample + replayed / steps if steps else math.nan
     for key in BOX_SHARES:
         tail = tracker.history(run, key)[-WINDOW:]  # the final score's episodes
         if tail:
@@ -87,7 +90,10 @@ def evaluation_record(
     members share one design)."""
     seeds = zip(finals.items(), members, strict=True)
     return {
-        "seeds": {str(s): seed_record(tracker, m, f, cfg.controller) for (s, f), m in seeds},
+        "seeds": {
+            str(s): seed_record(tracker, m, f, cfg.controller, cfg.weights.replay.sample)
+            for (s, f), m in seeds
+        },
         "design": design_record(tracker, members[0].run_id, cfg) if members else None,
     }
 
