@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from cdqn.agents.base import EpsilonGreedy, StepRecord
-from cdqn.agents.replay import ReplayBuffer
+from cdqn.agents.replay import Batch, ReplayBuffer
 from cdqn.config import TrainConfig
 from cdqn.control.runtime import RuntimeController, ScheduledLQR, StateSpace, StaticGain
 from cdqn.network import FastTwoLayer, Forward, QNetwork, gradient_step
@@ -133,14 +133,7 @@ class ControlledAgent:
         """Episodic replay (:mod:`cdqn.agents.episodic_replay`): ``repeats`` passes over
         ``tail`` in temporal order, each transition through :meth:`update`."""
         for _ in range(repeats):
-            for i in range(len(tail.actions)):
-                yield self.update(
-                    tail.obs[i],
-                    int(tail.actions[i]),
-                    float(tail.rewards[i]),
-                    tail.next_obs[i],
-                    bool(tail.terminated[i]),
-                )
+            yield from self._updates(tail, len(tail.actions))
 
     def replay_sampled(
         self, obs: np.ndarray, action: int, reward: float, next_obs: np.ndarray, terminated: bool
@@ -150,14 +143,17 @@ class ControlledAgent:
         through :meth:`update`."""
         assert self.memory is not None
         self.memory.add(obs, action, reward, next_obs, terminated)
-        batch = self.memory.sample(self.sample)
-        for i in range(self.sample):
+        yield from self._updates(self.memory.sample(self.sample), self.sample)
+
+    def _updates(self, rows: Transitions | Batch, n: int) -> Iterator[StepRecord]:
+        """:meth:`update` on the first ``n`` transitions of ``rows``, in order."""
+        for i in range(n):
             yield self.update(
-                batch.obs[i],
-                int(batch.actions[i]),
-                float(batch.rewards[i]),
-                batch.next_obs[i],
-                bool(batch.terminated[i]),
+                rows.obs[i],
+                int(rows.actions[i]),
+                float(rows.rewards[i]),
+                rows.next_obs[i],
+                bool(rows.terminated[i]),
             )
 
     def _autograd_step(
