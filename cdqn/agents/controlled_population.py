@@ -40,7 +40,7 @@ from numba import njit
 
 from cdqn.agents.base import LoopState, decide, draw_ahead, explore_ahead
 from cdqn.agents.episodic_replay import Transitions
-from cdqn.agents.replay import StackedReplay
+from cdqn.agents.replay import Batch, StackedReplay
 from cdqn.config import TrainConfig
 from cdqn.control.kernels import scheduled_lqr_step, state_space_step, static_gain_u
 from cdqn.control.runtime import (
@@ -427,13 +427,7 @@ class ControlledPopulation:
         the divergence test, or −1."""
         assert self.memory is not None
         mem, k = self.memory, len(self.x_e)
-        rows = np.arange(k)
-        pos = mem.pos
-        mem.obs[rows, pos], mem.next_obs[rows, pos] = obs, step.obs
-        mem.actions[rows, pos], mem.rewards[rows, pos] = actions, step.reward
-        mem.terminated[rows, pos] = step.terminated
-        mem.pos = (pos + 1) % mem.capacity
-        mem.size = np.minimum(mem.size + 1, mem.capacity)
+        mem.add_all(Batch(obs, actions, step.reward, step.obs, step.terminated))
         draws = zip(self.samplers, mem.size, strict=True)
         idx = np.stack([g.integers(n, size=self.sample) for g, n in draws])
         failed = np.full(k, -1, dtype=np.int64)

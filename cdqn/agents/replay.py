@@ -99,6 +99,16 @@ class StackedReplay:
         self.size = np.zeros(k, dtype=np.int64)
         self.pos = np.zeros(k, dtype=np.int64)
 
+    def add_all(self, step: Batch) -> None:
+        """One transition per member (``(K, n_obs)`` and ``(K,)`` arrays), each in its own
+        ring as :meth:`ReplayBuffer.add` stores it."""
+        rows, pos = np.arange(len(self.pos)), self.pos
+        self.obs[rows, pos], self.next_obs[rows, pos] = step.obs, step.next_obs
+        self.actions[rows, pos], self.rewards[rows, pos] = step.actions, step.rewards
+        self.terminated[rows, pos] = step.terminated
+        self.pos = (pos + 1) % self.capacity
+        self.size = np.minimum(self.size + 1, self.capacity)
+
     def select(self, keep: np.ndarray) -> None:
         """Keep only the members ``keep`` (indices, in that order)."""
         self.obs, self.next_obs = self.obs[keep], self.next_obs[keep]
