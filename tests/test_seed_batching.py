@@ -13,7 +13,7 @@ from hydra.core.plugins import Plugins
 from hydra.plugins.sweeper import Sweeper
 from mlflow.tracking import MlflowClient
 
-from cdqn.training.batching import JobShape, batch_jobs, job_shape, seed_runs
+from cdqn.training.batching import JobShape, Planned, batch_jobs, job_shape, makespan, seed_runs
 from cdqn.training.callbacks import format_summary, member_entries
 from cdqn.training.result import RunResult
 from hydra_plugins.cdqn_sweeper.cdqn_sweeper import CdqnSweeper
@@ -52,6 +52,35 @@ def test_populations_are_capped_and_split_evenly() -> None:
         ["controller=h2", "seed=4", "train.population=4"],
         ["controller=h2", "seed=8", "train.population=4"],
     ]
+
+
+def _planned(job: list[str]) -> Planned:
+    """The :class:`Planned` job of a batched job's overrides."""
+    opts = dict(o.split("=", 1) for o in job)
+    count = int(opts.get("train.population", 1))
+    return Planned(job, int(opts["seed"]), count, opts["controller"])
+
+
+def test_populations_are_split_so_that_two_workers_end_together() -> None:
+    controllers = ["h2", "hinf", "hinf_f", "ddqn"]
+    jobs = _product(controllers, list(range(10)))
+    balanced = batch_jobs(jobs, 10, _by_controller, workers=2)
+    assert balanced == [  # costs 13.5, 13.5, 11, 11, 6, 6: 30.5 on each worker
+        ["controller=ddqn", "seed=0", "train.population=5"],
+        ["controller=ddqn", "seed=5", "train.population=5"],
+        ["controller=hinf", "seed=0", "train.population=10"],
+        ["controller=hinf_f", "seed=0", "train.population=10"],
+        ["controller=h2", "seed=0", "train.population=5"],
+        ["controller=h2", "seed=5", "train.population=5"],
+    ]
+    runs = sorted(
+        (p.controller, p.seed + i) for p in map(_planned, balanced) for i in range(p.size)
+    )
+    assert runs == sorted((c, s) for c in controllers for s in range(10))
+    unbalanced = batch_jobs(jobs, 10, _by_controller)
+    spans = [makespan([_planned(j) for j in js], 2) for js in (balanced, unbalanced)]
+    assert spans == [30.5, 33.0]
+    assert batch_jobs(jobs, 10, _by_controller, workers=1) == unbalanced  # no split helps
 
 
 def test_seeds_that_are_not_consecutive_run_as_they_are() -> None:
@@ -162,23 +191,25 @@ SWEEP = [
 
 @pytest.mark.slow
 def test_a_batched_sweep_stores_what_one_job_per_seed_stores(tmp_path: Path) -> None:
-    """The sweep through the real CLI (joblib launcher), batched, and again one job per
-    seed (``hydra.sweeper.max_population=1``; Hydra's basic launcher runs the six jobs one
-    after the other in the command's own process) into another store: every seed is its own
-    FINISHED run with its own summary line, with the returns and signal rows of the
-    unbatched run of that seed; started again with ``tracking.skip_finished=true``, the
-    batched sweep skips every member."""
+    """The sweep through the real CLI (joblib launcher, two workers), batched and balanced
+    (Double DQN's three seeds as a population of two and a single run, :func:`balance`), and
+    again one job per seed (``hydra.sweeper.max_population=1``; Hydra's basic launcher runs
+    the six jobs one after the other in the command's own process) into another store: every
+    seed is its own FINISHED run with its own summary line, with the returns and signal rows
+    of the unbatched run of that seed; started again with ``tracking.skip_finished=true``,
+    the batched sweep skips every member."""
     stores = {name: tmp_path / name for name in ("batched", "single")}
     out = {}
     for name, folder in stores.items():
         folder.mkdir()
         single = ["hydra.sweeper.max_population=1", "hydra/launcher=basic"]
-        extra = single if name == "single" else []
+        extra = single if name == "single" else ["hydra.launcher.n_jobs=2"]
         proc = run_cli("cdqn.train", [*SWEEP, *extra, "hydra.sweep.dir=multirun"], folder, 900)
         assert proc.returncode == 0, proc.stderr[-3000:]
         out[name] = proc.stdout + proc.stderr
-    assert "cdqn sweeper: 6 jobs as 2" in out["batched"]
-    assert "cdqn multirun multirun: 2 jobs (6 runs): 6 FINISHED" in out["batched"]
+    assert "cdqn sweeper: 6 jobs as 3" in out["batched"]
+    assert "balanced over 2 workers" in out["batched"]
+    assert "cdqn multirun multirun: 3 jobs (6 runs): 6 FINISHED" in out["batched"]
     assert "cdqn multirun multirun: 6 jobs: 6 FINISHED" in out["single"]
     lines = [set(ln.split()) for ln in out["batched"].splitlines() if "FINISHED  run " in ln]
     assert sorted(
@@ -189,15 +220,17 @@ def test_a_batched_sweep_stores_what_one_job_per_seed_stores(tmp_path: Path) -> 
         if w.startswith("controller=") and v.startswith("seed=")
     ) == sorted((f"controller={c}", f"seed={s}") for c in ("ddqn", "hinf_f") for s in range(3))
     summary = json.loads((stores["batched"] / "multirun" / "summary.json").read_text())
-    assert [len(job["members"]) for job in summary] == [3, 3]
+    assert [len(job.get("members", [job])) for job in summary] == [2, 3, 1]
 
     batched, single = (MlflowClient(f"sqlite:///{f / 'mlflow.db'}") for f in stores.values())
     key = lambda r: (r.data.tags["controller"], r.data.tags["seed"])  # noqa: E731
     ours = {key(r): r for r in runs_of(f"sqlite:///{stores['batched'] / 'mlflow.db'}")}
     theirs = {key(r): r for r in runs_of(f"sqlite:///{stores['single'] / 'mlflow.db'}")}
     assert sorted(ours) == sorted(theirs) and len(ours) == 6
+    populations = {("ddqn", "0"): "0-1", ("ddqn", "1"): "0-1", ("ddqn", "2"): None}
     for k, run in ours.items():
-        assert run.data.tags["population"] == "0-2" and "population" not in theirs[k].data.tags
+        assert run.data.tags.get("population") == populations.get(k, "0-2")
+        assert "population" not in theirs[k].data.tags
         assert_same_run(batched, run.info.run_id, theirs[k].info.run_id, single)
 
     again = run_cli(

@@ -10,9 +10,10 @@ expands (as Hydra's basic sweeper does) into one job per seed.  The cdqn sweeper
 the single run of its seed (:mod:`cdqn.training.population`), so only the wall time
 changes.  Jobs stay as they are where the configuration cannot batch (:func:`batchable`),
 where it already sets ``train.population`` or ``resume``, and where a seed is not an
-integer or appears twice.  The jobs are launched Double DQN first, then by number of
-seeds (:func:`launch_order`): the longest jobs start first, so that parallel workers end
-together.
+integer or appears twice.  For a launcher of ``W`` parallel workers (joblib's), populations
+are halved while that lets the workers end sooner (:func:`balance`), by a cost model of
+members and jobs (:data:`MEMBER_COST`, :data:`JOB_COST`), and the longest jobs are launched
+first (:func:`launch_order`).
 """
 
 from __future__ import annotations
@@ -110,19 +111,61 @@ def _with_seed(job: Sequence[str], seed: int, population: int) -> list[str]:
     return [*out, f"{POPULATION_KEY}={population}"] if population > 1 else out
 
 
+MEMBER_COST = {"ddqn": 2.5}
+"""A member's training time in units of a controlled member's (absent: 1).  Double DQN's
+minibatch step makes its member-step about 2.5 times a controlled one on CartPole
+(docs/speed.md)."""
+JOB_COST = 1.0
+"""What starting a job costs beyond its members (the worker's start, the design's synthesis,
+a population's Python per step), in the same units: a population of 3 runs about 15 %
+slower per member than one of 10."""
+
+
+class Planned(NamedTuple):
+    """One job of the batched sweep: ``overrides`` as the sweep wrote them (with the first
+    seed's ``seed=…``), or a population of ``size`` seeds from ``seed``."""
+
+    overrides: list[str]
+    seed: int | None
+    size: int
+    controller: str
+
+    @property
+    def cost(self) -> float:
+        return self.size * MEMBER_COST.get(self.controller, 1.0) + JOB_COST
+
+    def job(self) -> list[str]:
+        """The job's overrides: ``seed=<seed>`` and ``train.population=<size>``."""
+        if self.seed is None:
+            return self.overrides
+        return _with_seed(self.overrides, self.seed, self.size)
+
+    def halves(self) -> tuple[Planned, Planned]:
+        """The population split in two of consecutive seeds, the first no smaller."""
+        assert self.seed is not None
+        first = (self.size + 1) // 2
+        return (
+            self._replace(size=first),
+            self._replace(seed=self.seed + first, size=self.size - first),
+        )
+
+
 def batch_jobs(
     jobs: Sequence[Sequence[str]],
     max_population: int,
     shape: Callable[[list[str]], JobShape],
+    workers: int | None = None,
 ) -> list[list[str]]:
     """The jobs of a multirun (override lists) with those that differ only in ``seed``
-    grouped into populations (module docstring), in :func:`launch_order`.  ``shape`` tells
-    whether a job's configuration can batch; it is asked once per group."""
+    grouped into populations (module docstring), split further by :func:`balance` for
+    ``workers`` parallel workers (None: a launcher that runs every job at once), longest
+    first.  ``shape`` tells whether a job's configuration can batch; it is asked once per
+    group."""
     groups: dict[tuple[str, ...], list[tuple[Sequence[str], int | None]]] = {}
     for job in jobs:
         rest, seed = _seed_of(job)
         groups.setdefault(rest, []).append((job, seed))
-    planned: list[tuple[list[str], int, str]] = []  # overrides, seeds, controller
+    planned: list[Planned] = []
     for rest, members in groups.items():
         seeds = [s for _, s in members]
         first = list(members[0][0])
@@ -137,17 +180,45 @@ def batch_jobs(
             and kind.batchable
         )
         if not can:
-            planned += [(list(job), 1, kind.controller) for job, _ in members]
+            planned += [Planned(list(job), None, 1, kind.controller) for job, _ in members]
             continue
         for seed, count in seed_runs([s for s in seeds if s is not None], max_population):
-            planned.append((_with_seed(first, seed, count), count, kind.controller))
-    return launch_order(planned)
+            planned.append(Planned(first, seed, count, kind.controller))
+    if workers is not None:
+        planned = balance(planned, workers)
+    return [p.job() for p in launch_order(planned)]
 
 
-def launch_order(planned: list[tuple[list[str], int, str]]) -> list[list[str]]:
-    """Double DQN's jobs first, then the jobs with more seeds, otherwise in sweep order.
-    A Double DQN member costs about ten controlled members (its minibatch step,
-    docs/speed.md), so its populations are the longest jobs; started first, they leave the
-    shorter jobs to fill the other workers."""
-    order = sorted(range(len(planned)), key=lambda i: (planned[i][2] != "ddqn", -planned[i][1]))
-    return [planned[i][0] for i in order]
+def makespan(planned: Sequence[Planned], workers: int) -> float:
+    """When the last of ``planned`` ends on ``workers`` workers that each take the next job
+    of :func:`launch_order` as they become free (joblib's order), in job costs."""
+    ends = [0.0] * max(1, workers)
+    for p in launch_order(list(planned)):
+        ends[ends.index(min(ends))] += p.cost
+    return max(ends)
+
+
+def balance(planned: list[Planned], workers: int) -> list[Planned]:
+    """``planned`` with populations halved while that shortens the :func:`makespan` on
+    ``workers`` workers: each round takes the one halving that shortens it most.  Four jobs
+    of ten seeds on two workers, one of them Double DQN's, become six: Double DQN's two
+    halves, one controller's two halves and the two others whole."""
+    best = makespan(planned, workers)
+    while True:
+        trials = []
+        for i, p in enumerate(planned):
+            if p.seed is not None and p.size > 1:
+                trial = [*planned[:i], *p.halves(), *planned[i + 1 :]]
+                trials.append((makespan(trial, workers), i, trial))
+        if not trials:
+            return planned
+        span, _, trial = min(trials, key=lambda t: (t[0], t[1]))
+        if span >= best - 1e-9:
+            return planned
+        planned, best = trial, span
+
+
+def launch_order(planned: list[Planned]) -> list[Planned]:
+    """The longest jobs first (:attr:`Planned.cost`), otherwise in sweep order: started
+    first, they leave the shorter jobs to fill the other workers."""
+    return sorted(planned, key=lambda p: -p.cost)

@@ -20,7 +20,7 @@ import tempfile
 import time
 import urllib.error
 import urllib.request
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 from urllib.parse import urlsplit
@@ -410,8 +410,8 @@ class Recorder:
     def flush(self) -> None:
         """Write the pending metrics (a batch written is dropped from :attr:`pending`)."""
         while self._pending:
-            batch = self._pending[:1000]
-            self._retry(functools.partial(self.client.log_batch, self.run_id, metrics=batch),
+            batch = self._pending[:METRICS_PER_WRITE]
+            self._retry(functools.partial(log_metrics, self.client, self.run_id, batch),
                         "metrics")  # fmt: skip
             del self._pending[: len(batch)]
         self._last_flush = time.monotonic()
@@ -473,6 +473,67 @@ class Recorder:
             self.set_tags({Tag.FAILURE_REASON: failure_reason[:5000]})
         state = RunStatus.to_string(RunStatus.from_string(status))
         self._retry(lambda: self.client.set_terminated(self.run_id, status=state), "status")
+
+
+METRICS_PER_WRITE = 5000
+"""Metric values written per call of :func:`log_metrics` by :meth:`Recorder.flush`."""
+
+
+def log_metrics(client: MlflowClient, run_id: str, metrics: Sequence[Metric]) -> None:
+    """Write ``metrics`` to run ``run_id``: what ``client.log_batch(run_id, metrics=...)``
+    stores, in less time on a SQL store.
+
+    MLflow's SQL store (``sqlite:``, ``postgresql:``, …) builds one ORM object per value in
+    ``log_batch``, about 60 µs each: at eleven metrics per episode, a third of a CartPole
+    controlled run.  Here the newest value of each key goes through ``log_batch``, which
+    checks that the run is active and keeps its ``latest_metrics``, and the others in one
+    ``executemany`` into MLflow's ``metrics`` table, through MLflow's own table model and
+    value rules (NaN stored as ``is_nan``, ±inf as ±float max).  Values already stored (a
+    resumed run writing again what it had written) make that insert fail as a whole, and
+    then go through ``log_batch``, which skips them.  Other stores (a tracking server,
+    ``file:``, an MLflow without those rules): ``log_batch`` in chunks of 1000, its limit.
+    """
+    import sqlalchemy.exc
+    from mlflow.store.tracking.dbmodels.models import SqlMetric
+    from mlflow.store.tracking.sqlalchemy_store import SqlAlchemyStore
+
+    store = client._tracking_client.store
+    fast = isinstance(store, SqlAlchemyStore) and hasattr(store, "sanitize_metric_value")
+    if not fast:
+        for i in range(0, len(metrics), 1000):
+            client.log_batch(run_id, metrics=list(metrics[i : i + 1000]))
+        return
+    newest: dict[str, Metric] = {}
+    for m in metrics:
+        old = newest.get(m.key)
+        if old is None or (m.step, m.timestamp, m.value) > (old.step, old.timestamp, old.value):
+            newest[m.key] = m
+    client.log_batch(run_id, metrics=list(newest.values()))
+    last = {id(m) for m in newest.values()}
+    rest = [m for m in metrics if id(m) not in last]
+    if not rest:
+        return
+    rows = []
+    for m in rest:
+        is_nan, value = store.sanitize_metric_value(float(m.value))
+        row = {"run_uuid": run_id, "key": m.key, "value": value, "is_nan": is_nan}
+        rows.append(row | {"timestamp": int(m.timestamp), "step": int(m.step)})
+    try:
+        with _write_session(store) as session:
+            session.execute(SqlMetric.__table__.insert(), rows)
+    except MlflowException as err:  # the store wraps the driver's error
+        if not isinstance(err.__cause__, sqlalchemy.exc.IntegrityError):
+            raise
+        for i in range(0, len(rest), 1000):
+            client.log_batch(run_id, metrics=rest[i : i + 1000])
+
+
+def _write_session(store: Any) -> contextlib.AbstractContextManager[Any]:
+    """A session of ``store`` that may write (MLflow ≥ 3 asks for it; 2.x has no flag)."""
+    try:
+        return store.ManagedSessionMaker(read_only=False)
+    except TypeError:
+        return store.ManagedSessionMaker()
 
 
 def _param_value(value: Any) -> str:

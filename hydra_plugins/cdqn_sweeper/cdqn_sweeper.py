@@ -4,9 +4,11 @@ It expands the sweep as Hydra's basic sweeper does (cartesian product of the swe
 ``hydra.sweeper.params`` included), then regroups the jobs that differ only in ``seed``
 into population jobs ``seed=<first> train.population=<K>`` of at most
 ``hydra.sweeper.max_population`` consecutive seeds
-(:func:`cdqn.training.batching.batch_jobs`), and hands them to the configured launcher
-(joblib on the local cores, submitit on Slurm, Ray).  Every member of a population is its
-own MLflow run and learns exactly what the single run of its seed learns.
+(:func:`cdqn.training.batching.batch_jobs`), splits them further so that the launcher's
+workers end together (:func:`cdqn.training.batching.balance`), and hands them to the
+configured launcher (joblib on the local cores, submitit on Slurm, Ray).  Every member of
+a population is its own MLflow run and learns exactly what the single run of its seed
+learns.
 ``hydra.sweeper.max_population=1`` launches one job per seed.
 
 Selected in ``conf/config.yaml`` (``override hydra/sweeper: cdqn``); the ``cdqn`` option of
@@ -73,13 +75,29 @@ class CdqnSweeper(BasicSweeper):
         from cdqn.training.batching import batch_jobs
 
         (jobs,) = BasicSweeper.split_arguments(overrides, None)
-        batched = batch_jobs(jobs, self.max_population, self._shape)
+        workers = self._workers()
+        batched = batch_jobs(jobs, self.max_population, self._shape, workers)
         if len(batched) < len(jobs):
             log.info(
-                "cdqn sweeper: %d jobs as %d (seeds trained as populations of up to %d)",
+                "cdqn sweeper: %d jobs as %d (seeds trained as populations of up to %d%s)",
                 len(jobs), len(batched), self.max_population,
+                "" if workers is None else f", balanced over {workers} workers",
             )  # fmt: skip
         return list(BasicSweeper.split_overrides_to_chunks(batched, max_batch_size))
+
+    def _workers(self) -> int | None:
+        """The launcher's parallel workers: joblib's ``hydra.launcher.n_jobs`` (−1: every
+        core, −2: all but one, as joblib counts them), or None for a launcher without it
+        (Slurm, Ray: every job at once)."""
+        assert self.config is not None
+        n_jobs = self.config.hydra.launcher.get("n_jobs")
+        if n_jobs is None:
+            return None
+        if n_jobs < 0:
+            from joblib import cpu_count
+
+            return max(1, cpu_count() + 1 + int(n_jobs))
+        return max(1, int(n_jobs))
 
     def _shape(self, overrides: list[str]) -> Any:
         """:class:`cdqn.training.batching.JobShape` of one job, composed as Hydra will."""
