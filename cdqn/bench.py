@@ -80,7 +80,7 @@ from cdqn.config import CONF_DIR, Config, register_configs, to_schema  # noqa: E
 from cdqn.control.factory import make_controller  # noqa: E402
 from cdqn.envs import adopt, env_presets, env_sizes, make_env  # noqa: E402
 from cdqn.network import NetworkSpec, QNetwork  # noqa: E402
-from cdqn.records import Signal, Tag, column  # noqa: E402
+from cdqn.records import EPISODE_METRICS, Signal, Tag, column  # noqa: E402
 from cdqn.training.build import build, build_population, member_config  # noqa: E402
 from cdqn.training.lifecycle import RunLifecycle  # noqa: E402
 from cdqn.training.loop import DivergenceError, EpisodeStats, TrainState, train  # noqa: E402
@@ -128,9 +128,6 @@ class Throughput:
     steps: int
     seconds: float
     episodes: int = 0
-    metric_write_s: float = 0.0
-    """Seconds spent writing these episodes' metrics to the MLflow store (not in
-    ``seconds``)."""
 
     @property
     def steps_per_s(self) -> float:
@@ -297,7 +294,7 @@ def measure_single(cfg: DictConfig, uri: str, steps: int, warmup: int) -> Throug
     """One run's training loop (agent, trainer, signals, episode statistics handed to the
     MLflow recorder) for ``warmup + steps`` environment steps; only whole episodes after the
     warm-up are timed, and a diverged run is replaced by another seed's.  The recorder's
-    batched metric writes are timed apart (:attr:`Throughput.metric_write_s`)."""
+    batched metric writes are left out (:func:`metric_write_seconds_per_episode`)."""
     conf = _conf(cfg)
     total = Throughput(0, 0.0)
     done, seed = 0, conf.seed
@@ -343,9 +340,6 @@ def measure_single(cfg: DictConfig, uri: str, steps: int, warmup: int) -> Throug
         except DivergenceError:
             seed += 1_000
         finally:
-            t0 = time.perf_counter()
-            recorder.flush()
-            flush_s = time.perf_counter() - t0
             recorder.finish()
             env.close()
         if len(window) == 2:
@@ -354,7 +348,6 @@ def measure_single(cfg: DictConfig, uri: str, steps: int, warmup: int) -> Throug
                 total.steps + s1 - s0,
                 total.seconds + t1 - t0,
                 total.episodes + e1 - e0,
-                total.metric_write_s + flush_s,
             )
         done += state.total_steps
     return total
@@ -384,7 +377,6 @@ def measure_population(
             total.steps + window.steps,
             total.seconds + window.seconds,
             total.episodes + window.episodes,
-            total.metric_write_s + window.metric_write_s,
         )
         overheads.append(overhead)
         if total.steps >= k * steps:
@@ -411,7 +403,6 @@ def _population_window(
     t_open = time.perf_counter() - t_open
     timer: dict[str, float] = {"calls": 0, "member_steps": 0}
     ended: list[float] = []
-    flushes: list[float] = []
     for m in members:
         assert m.recorder is not None
         m.recorder.flush_seconds = float("inf")  # written at the end, timed apart
@@ -440,9 +431,7 @@ def _population_window(
 
     def on_member_end(m: Member, pop: Any, j: int) -> None:
         assert m.recorder is not None
-        t = time.perf_counter()
         m.recorder.flush()
-        flushes.append(time.perf_counter() - t)
         t = time.perf_counter()
         life.close(m, pop.network(j))
         ended.append(time.perf_counter() - t)
@@ -468,7 +457,7 @@ def _population_window(
     seconds = timer["t1"] - timer["t0"]
     episodes = int(timer["episodes1"] - timer["episodes0"])
     member_steps = int(timer["member_steps"])
-    return Throughput(member_steps, seconds, episodes, sum(flushes)), (t_open + sum(ended)) / k
+    return Throughput(member_steps, seconds, episodes), (t_open + sum(ended)) / k
 
 
 def _pop_warmup(controller: str, warmup: int, k: int) -> int:
@@ -508,7 +497,6 @@ def estimate_paper_sweep(
     lengths = dict(EPISODE_LENGTH if lengths is None else lengths)
     rates: dict[str, dict[str, float]] = {}
     overhead: list[float] = []
-    metric = [metric_s] if np.isfinite(metric_s) else []
     for env in PAPER_ENVS:
         rates[env] = {}
         for ctrl in PAPER_CONTROLLERS:
@@ -517,10 +505,7 @@ def estimate_paper_sweep(
             measured = pop.member_steps
             overhead.append(pop.run_overhead_s)
             rates[env][ctrl] = measured.steps_per_s
-            if measured.episodes and not np.isfinite(metric_s):
-                metric.append(measured.metric_write_s / measured.episodes)
     per_run = _median(overhead)
-    metric_s = _median(metric)
     signal_s = signal_write_seconds_per_step(uri)
     jobs: dict[str, list[float]] = {"expected": [], "upper": []}
     for env, ctrl in SWEEP_ORDER:
@@ -556,6 +541,22 @@ def synthetic_signals(rows: int) -> np.ndarray:
     table[:, column(Signal.STEP)] = np.arange(rows) % 150
     table[:, column(Signal.THETA1)] = np.abs(table[:, column(Signal.THETA1)]) * 300.0
     return table
+
+
+def metric_write_seconds_per_episode(uri: str, episodes: int = 300) -> float:
+    """Wall-clock seconds per episode of writing a run's episode metrics
+    (:data:`cdqn.records.EPISODE_METRICS`) as the recorder does, in one flush of
+    ``episodes`` episodes: about what a CartPole member logs between two flushes
+    (every 5 s)."""
+    recorder = Recorder.start(uri, "bench", "bench-metrics", {}, {})
+    recorder.add_pending(
+        [(str(key), float(ep), 0, ep) for ep in range(episodes) for key in EPISODE_METRICS]
+    )
+    t0 = time.perf_counter()
+    recorder.flush()
+    seconds = time.perf_counter() - t0
+    recorder.finish()
+    return seconds / episodes
 
 
 def signal_write_seconds_per_step(uri: str, rows: int = 100_000) -> float:
@@ -690,11 +691,8 @@ def _measure_table(
     floor: list[float] = []
     single: dict[str, list[float]] = {c: [] for c in controllers}
     pop: dict[str, list[float]] = {c: [] for c in controllers}
-    metric: list[float] = []  # seconds of MLflow metric writes per episode
 
     def keep(t: Throughput) -> float:
-        if t.episodes:
-            metric.append(t.metric_write_s / t.episodes)
         return t.steps_per_s
 
     for _ in range(0 if args.only_estimate else args.repeats):
@@ -719,7 +717,7 @@ def _measure_table(
             for c, v in single.items()
         },
         "limits": limits,
-        "metric_write_s_per_episode": _median(metric),
+        "metric_write_s_per_episode": metric_write_seconds_per_episode(uri),
     }
     if k > 1 and pop:
         by = {
