@@ -17,8 +17,10 @@ ratio to the floor's (``ratio_to_floor = floor steps/s ÷ controller steps/s``; 
 no slower than the floor).  Numbers are medians over ``--repeats`` interleaved rounds, so
 that other load on the machine affects all of them alike, in CPU seconds of this process
 (``--clock wall`` for wall-clock seconds).  The recorder's batched writes of the episode
-metrics to the store cost the same per episode in every mode; they are timed apart (wall
-clock), printed below the table and included in the estimate.
+metrics to the store cost the same per episode in every mode; they are kept out of the
+timed windows, timed apart in one flush of 300 episodes (wall clock,
+:func:`metric_write_seconds_per_episode`), printed below the table and included in the
+estimate.
 
 Beside each agent's microseconds per step (single run) or per member-step (population) it
 prints its **limit**: the multiply-adds of one environment step of that agent, counted from
@@ -127,7 +129,6 @@ disk and are always timed in wall-clock seconds."""
 class Throughput:
     steps: int
     seconds: float
-    episodes: int = 0
 
     @property
     def steps_per_s(self) -> float:
@@ -303,22 +304,22 @@ def measure_single(cfg: DictConfig, uri: str, steps: int, warmup: int) -> Throug
         env = make_env(conf.env)
         job = build(conf, env)
         recorder = Recorder.start(uri, conf.tracking.experiment, f"bench-s{seed}", {}, {})
-        recorder.flush_seconds = float("inf")  # written below, timed apart
+        recorder.flush_seconds = float("inf")  # written outside the window
         state = TrainState()
-        window: list[tuple[int, int, float]] = []  # (steps, episodes, time) at its edges
+        window: list[tuple[int, float]] = []  # (steps, time) at its edges
 
         def on_episode(
             stats: EpisodeStats,
             st: TrainState,
             rec: Recorder = recorder,
-            window: list[tuple[int, int, float]] = window,
+            window: list[tuple[int, float]] = window,
             before: int = done,
         ) -> None:
             rec.log_episode(stats)
             if before + st.total_steps >= warmup:
                 if not window:
                     rec.flush()  # the warm-up's metrics
-                window[1:] = [(st.total_steps, st.episode, clock())]
+                window[1:] = [(st.total_steps, clock())]
 
         def should_stop(st: TrainState = state, before: int = done) -> bool:
             return before + st.total_steps >= warmup + steps
@@ -343,12 +344,8 @@ def measure_single(cfg: DictConfig, uri: str, steps: int, warmup: int) -> Throug
             recorder.finish()
             env.close()
         if len(window) == 2:
-            (s0, e0, t0), (s1, e1, t1) = window
-            total = Throughput(
-                total.steps + s1 - s0,
-                total.seconds + t1 - t0,
-                total.episodes + e1 - e0,
-            )
+            (s0, t0), (s1, t1) = window
+            total = Throughput(total.steps + s1 - s0, total.seconds + t1 - t0)
         done += state.total_steps
     return total
 
@@ -373,11 +370,7 @@ def measure_population(
     total, overheads, seed = Throughput(0, 0.0), [], _conf(cfg).seed
     for _ in range(8):
         window, overhead = _population_window(cfg, uri, k, steps - total.steps // k, warmup, seed)
-        total = Throughput(
-            total.steps + window.steps,
-            total.seconds + window.seconds,
-            total.episodes + window.episodes,
-        )
+        total = Throughput(total.steps + window.steps, total.seconds + window.seconds)
         overheads.append(overhead)
         if total.steps >= k * steps:
             break
@@ -405,7 +398,7 @@ def _population_window(
     ended: list[float] = []
     for m in members:
         assert m.recorder is not None
-        m.recorder.flush_seconds = float("inf")  # written at the end, timed apart
+        m.recorder.flush_seconds = float("inf")  # written at the end, outside the window
 
     def tick() -> bool:  # called once per population step, after its episode ends
         timer["calls"] += 1
@@ -415,13 +408,11 @@ def _population_window(
             for m in members:  # the warm-up's metrics
                 if m.recorder is not None:
                     m.recorder.flush()
-            timer["episodes0"] = sum(m.episode for m in members)
             timer["t0"] = clock()
         all_in = all(m.status == "RUNNING" for m in members)
         if timer["calls"] == warmup + steps or not all_in:
             if "t0" in timer:
                 timer["t1"] = clock()
-                timer["episodes1"] = sum(m.episode for m in members)
             return True
         return False
 
@@ -455,9 +446,7 @@ def _population_window(
     if "t1" not in timer:  # a member left during the warm-up: nothing timed
         return Throughput(0, 0.0), (t_open + sum(ended)) / k
     seconds = timer["t1"] - timer["t0"]
-    episodes = int(timer["episodes1"] - timer["episodes0"])
-    member_steps = int(timer["member_steps"])
-    return Throughput(member_steps, seconds, episodes), (t_open + sum(ended)) / k
+    return Throughput(int(timer["member_steps"]), seconds), (t_open + sum(ended)) / k
 
 
 def _pop_warmup(controller: str, warmup: int, k: int) -> int:
@@ -692,16 +681,13 @@ def _measure_table(
     single: dict[str, list[float]] = {c: [] for c in controllers}
     pop: dict[str, list[float]] = {c: [] for c in controllers}
 
-    def keep(t: Throughput) -> float:
-        return t.steps_per_s
-
     for _ in range(0 if args.only_estimate else args.repeats):
         floor.append(measure_floor(base, args.steps, args.warmup).steps_per_s)
         for c in controllers:
-            single[c].append(keep(measure_single(cfgs[c], uri, args.steps, args.warmup)))
+            single[c].append(measure_single(cfgs[c], uri, args.steps, args.warmup).steps_per_s)
             if k > 1:
                 p = measure_population(cfgs[c], uri, k, args.steps, _pop_warmup(c, args.warmup, k))
-                pop[c].append(keep(p.member_steps))
+                pop[c].append(p.member_steps.steps_per_s)
     limits = measure_limits(cfgs)
     floor_sps = _median(floor)
     result: dict[str, Any] = {

@@ -500,8 +500,7 @@ def log_metrics(client: MlflowClient, run_id: str, metrics: Sequence[Metric]) ->
     store = client._tracking_client.store
     fast = isinstance(store, SqlAlchemyStore) and hasattr(store, "sanitize_metric_value")
     if not fast:
-        for i in range(0, len(metrics), 1000):
-            client.log_batch(run_id, metrics=list(metrics[i : i + 1000]))
+        _log_batches(client, run_id, metrics)
         return
     newest: dict[str, Metric] = {}
     for m in metrics:
@@ -524,8 +523,13 @@ def log_metrics(client: MlflowClient, run_id: str, metrics: Sequence[Metric]) ->
     except MlflowException as err:  # the store wraps the driver's error
         if not isinstance(err.__cause__, sqlalchemy.exc.IntegrityError):
             raise
-        for i in range(0, len(rest), 1000):
-            client.log_batch(run_id, metrics=rest[i : i + 1000])
+        _log_batches(client, run_id, rest)
+
+
+def _log_batches(client: MlflowClient, run_id: str, metrics: Sequence[Metric]) -> None:
+    """``metrics`` through ``log_batch``, 1000 at a time (its limit)."""
+    for i in range(0, len(metrics), 1000):
+        client.log_batch(run_id, metrics=list(metrics[i : i + 1000]))
 
 
 def _write_session(store: Any) -> contextlib.AbstractContextManager[Any]:
