@@ -394,23 +394,25 @@ def _population_window(
     for m in members:
         life.open(m, setup, tags)
     t_open = time.perf_counter() - t_open
-    timer: dict[str, float] = {"calls": 0, "member_steps": 0}
+    timer: dict[str, float] = {"steps": 0, "member_steps": 0}
     ended: list[float] = []
     for m in members:
         assert m.recorder is not None
         m.recorder.flush_seconds = float("inf")  # written at the end, outside the window
 
-    def tick() -> bool:  # called once per population step, after its episode ends
-        timer["calls"] += 1
-        if timer["calls"] > warmup:
-            timer["member_steps"] += k
-        if timer["calls"] == warmup:
+    def count(taken: int) -> None:  # population steps since the last call
+        timer["steps"] += taken
+        if "t0" in timer:
+            timer["member_steps"] += taken * k
+
+    def tick() -> bool:  # called after each call of the loop, after its episode ends
+        if "t0" not in timer and timer["steps"] >= warmup:
             for m in members:  # the warm-up's metrics
                 if m.recorder is not None:
                     m.recorder.flush()
             timer["t0"] = clock()
         all_in = all(m.status == "RUNNING" for m in members)
-        if timer["calls"] == warmup + steps or not all_in:
+        if timer["steps"] >= warmup + steps or not all_in:
             if "t0" in timer:
                 timer["t1"] = clock()
             return True
@@ -437,6 +439,7 @@ def _population_window(
         on_episode=on_episode,
         on_member_end=on_member_end,
         should_stop=tick,
+        on_steps=count,
     )
     for env in venv.envs:
         env.close()

@@ -363,9 +363,13 @@ def sgd_deferred_row(n, f, a, s, f2, nxt, d):
         d.sx[i] = s * x[i]
     c = s * (_dot_in_order(x, f2.x) + 1.0)
     wa, p2 = w2[a], f2.p
-    for j in range(b1.shape[0]):  # one pass; each element's operations as sgd_row's
+    # each element's operations as sgd_row's; three loops, as there, since one loop over the
+    # six arrays (any of which may alias another for the compiler) is not vectorised
+    for j in range(b1.shape[0]):
         wa[j] += s * max(p[j], 0.0)
+    for j in range(b1.shape[0]):
         b1[j] += s * g[j]
+    for j in range(b1.shape[0]):
         p_next[j] = p2[j] + c * g[j]
     output_row(w2, b2, p_next, nxt.q)
 

@@ -5,7 +5,7 @@
     python -m cdqn.profile --controller ddqn                   # Double DQN
 
 Trains a population (:func:`cdqn.training.population_loop.train_population`, one thread,
-no tracking store) and times, per population step, what the loop calls: the environment
+no tracking store) step by step and times, per population step, what the loop calls: the environment
 twin's step and resets (:mod:`cdqn.vector_env`), the exploration plan, the act call's
 forward passes, the update kernel, and the recording (signal rows moved into each member's
 buffer, episode statistics).  The rest of the loop's time is its own Python.  The update
@@ -13,6 +13,9 @@ kernel's controller arithmetic (:mod:`cdqn.control.kernels`) is timed apart afte
 the members' controller arrays and subtracted from the update, which leaves the network's
 share (forward pass at s', Θ1/Θ2, SGD step) with the step's signal row.  Times are CPU
 seconds of this process; the first ``--warmup`` population steps are not counted.
+A controlled population on CartPole or Acrobot trains several steps per compiled call
+(:meth:`cdqn.agents.controlled_population.ControlledPopulation.run`), whose parts cannot be
+timed apart; its time per member-step is measured on its own (``as trained``).
 
 Double DQN (:mod:`cdqn.agents.ddqn_population`) has no controller; its update is timed as
 two parts, the per-step kernel (pass at s', Θ1/Θ2, signal row, replay buffer) and the
@@ -78,6 +81,9 @@ class Profile:
     seconds: dict[str, float] = field(default_factory=lambda: dict.fromkeys(PARTS, 0.0))
     """Per part (:data:`PARTS`, or :data:`DDQN_PARTS` for Double DQN)."""
     total: float = 0.0
+    trained: float | None = None
+    """µs per member-step of the loop as it trains (several steps per compiled call), where
+    it differs from step by step."""
 
     @property
     def us_per_member_step(self) -> float:
@@ -166,14 +172,36 @@ def profile_population(conf: Config, k: int, steps: int, warmup: int) -> Profile
 
     with _timed_episode_stats(timers), _timed_ddqn(agent, timers):
         train_population(agent, venv, members, episodes=10**9, discount=conf.train.discount,
-                         q_limit=conf.train.q_limit, should_stop=tick)  # fmt: skip
+                         q_limit=conf.train.q_limit, should_stop=tick,
+                         step_by_step=True)  # fmt: skip
     prof.total = prof.total or clock() - count["t0"]
     if isinstance(agent, ControlledPopulation):
         control = controller_seconds(agent.controller, prof.member_steps)
         prof.seconds["controller"] = control
         prof.seconds["network"] -= control
     prof.seconds["loop (Python)"] = prof.total - sum(prof.seconds.values())
+    if isinstance(agent, ControlledPopulation) and getattr(venv, "compiled", False):
+        prof.trained = trained_us_per_member_step(conf, k, steps, warmup)
     return prof
+
+
+def trained_us_per_member_step(conf: Config, k: int, steps: int, warmup: int) -> float:
+    """µs per member-step of the population as it trains: the CPU time of ``warmup + steps``
+    population steps less that of ``warmup``, each from a fresh population."""
+
+    def seconds(n: int) -> float:
+        setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
+        seeds = list(range(conf.seed, conf.seed + k))
+        agent, venv = build_population(conf, setup, seeds)
+        cfg = OmegaConf.structured(conf)
+        members = [Member(s, member_config(cfg, s)) for s in seeds]
+        t0 = clock()
+        train_population(agent, venv, members, episodes=10**9, discount=conf.train.discount,
+                         q_limit=conf.train.q_limit, max_steps=n)  # fmt: skip
+        return clock() - t0
+
+    seconds(1)  # compiled (or loaded) before it is timed
+    return 1e6 * (seconds(warmup + steps) - seconds(warmup)) / (steps * k)
 
 
 @contextmanager
@@ -241,6 +269,9 @@ def format_profile(name: str, prof: Profile) -> str:
              f"({prof.member_steps} member-steps)"]  # fmt: skip
     for part, share in prof.shares().items():
         lines.append(f"  {part:<42}{100 * share:>6.1f} %")
+    if prof.trained is not None:
+        lines.append(f"as trained (several steps per compiled call): {prof.trained:.2f} µs per "
+                     "member-step")  # fmt: skip
     return "\n".join(lines)
 
 
@@ -274,7 +305,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     conf = profile_config(args.env, args.controller, args.width)
     prof = profile_population(conf, args.population, args.steps, args.warmup)
     print(format_profile(f"{args.env} {args.controller} K={args.population}", prof))
-    return {"us_per_member_step": prof.us_per_member_step, "shares": prof.shares()}
+    return {"us_per_member_step": prof.us_per_member_step, "shares": prof.shares(),
+            "trained_us_per_member_step": prof.trained}  # fmt: skip
 
 
 if __name__ == "__main__":

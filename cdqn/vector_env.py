@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable
 from math import pi
 from typing import Any, NamedTuple, Protocol
 
@@ -332,19 +331,43 @@ class ClassicControlTwin:
     def load_boundary_state(self, i: int, state: dict[str, Any]) -> None:
         load_boundary_state(self.envs[i], state)
 
+    @property
+    def _raw_size(self) -> int:
+        return 6 if self.kind is AcrobotEnv else self.state.shape[1]
+
+    @property
+    def compiled(self) -> bool:
+        """Whether :func:`twin_step` computes the members' whole observations (every wrapper
+        but radial features, whose ``np.exp`` is NumPy's)."""
+        return self.features is None
+
+    def arrays(self) -> TwinArrays:
+        """The twin as :func:`twin_step` takes it (views of its arrays)."""
+        k, d = len(self.state), self._raw_size
+        none = np.zeros(0, np.float32)
+        offset, scale = (
+            (self.scaling.offset, self.scaling.scale) if self.scaling is not None else (none, none)
+        )
+        return TwinArrays(
+            self.KINDS.index(self.kind), self.state, self.params, 2.0, self.elapsed,
+            -1 if self.cap is None else self.cap,
+            np.arange(d) if self.indices is None else np.asarray(self.indices, np.int64),
+            offset, scale, self.features is None, np.empty((k, d), np.float32),
+        )  # fmt: skip
+
+    def outputs(self) -> VectorStep:
+        """Arrays for one step of every member (:func:`twin_step` writes them)."""
+        k = len(self.state)
+        d = self._raw_size if self.indices is None else len(self.indices)
+        return VectorStep(np.empty((k, d), np.float32), np.empty(k), np.empty(k, bool),
+                          np.empty(k, bool))  # fmt: skip
+
     def step(self, actions: np.ndarray) -> VectorStep:
-        k = len(actions)
-        obs = np.empty((k, 6 if self.kind is AcrobotEnv else self.state.shape[1]), np.float32)
-        reward, terminated, truncated = np.empty(k), np.empty(k, bool), np.empty(k, bool)
-        kernel = _KERNELS[self.kind]
-        kernel(self.state, np.ascontiguousarray(actions, np.int64), self.params, obs, reward,
-               terminated)  # fmt: skip
-        _count_steps(self.elapsed, -1 if self.cap is None else self.cap, truncated)
-        if self.indices is not None:
-            obs = obs[:, self.indices]
-        if self.scaling is not None or self.features is not None:
-            obs = self._observation_maps(obs)
-        return VectorStep(obs, reward, terminated, truncated)
+        out = self.outputs()
+        twin_step(tuple(self.arrays()), np.ascontiguousarray(actions, np.int64), tuple(out))
+        if self.features is None:
+            return out
+        return out._replace(obs=self._observation_maps(out.obs))
 
     def _observation_maps(self, obs: np.ndarray) -> np.ndarray:
         """The members' :class:`ObservationScale` and :class:`RadialFeatures` on all rows at
@@ -386,6 +409,52 @@ def _scale_and_exponents(obs, offset, scale, centres, sigma, out):
                 z = (s[i] - centres[j, i]) / sigma[i]
                 acc += z * z
             out[k, j] = half * acc
+
+
+class TwinArrays(NamedTuple):
+    """A :class:`ClassicControlTwin` as :func:`twin_step` takes it."""
+
+    kind: int
+    """Index of the environment class in :attr:`ClassicControlTwin.KINDS`."""
+    state: np.ndarray
+    params: np.ndarray
+    two: float
+    """2.0, given at run time (Acrobot's ``x**2`` stays libm's ``pow``, module docstring)."""
+    elapsed: np.ndarray
+    cap: int
+    """Episode cap (−1: none)."""
+    indices: np.ndarray
+    """The observation's entries the members see (:class:`ObservationSubset`)."""
+    offset: np.ndarray
+    scale: np.ndarray
+    """:class:`ObservationScale` (empty: none)."""
+    maps: bool
+    """Whether :func:`twin_step` applies the scaling (False: radial features follow, which
+    scale on their way)."""
+    raw: np.ndarray
+    """The environment's own observations ``(K, ·)``, float32."""
+
+
+@njit(cache=True)
+def twin_step(tw, actions, out):
+    """One step of every member into ``out`` (:class:`VectorStep`; bundles as plain
+    tuples): gymnasium's dynamics (:func:`_cartpole_kernel`, :func:`_acrobot_rk4`,
+    :func:`_mountaincar_kernel`), ``TimeLimit`` (:func:`_count_steps`), then the entries
+    ``indices`` of each observation, scaled when ``maps``."""
+    tw, out = TwinArrays(*tw), VectorStep(*out)
+    if tw.kind == 0:
+        _cartpole_kernel(tw.state, actions, tw.params, tw.raw, out.reward, out.terminated)
+    elif tw.kind == 1:
+        _acrobot_rk4(tw.state, actions, tw.params, tw.two, tw.raw, out.reward, out.terminated)
+    else:
+        _mountaincar_kernel(tw.state, actions, tw.params, tw.raw, out.reward, out.terminated)
+    _count_steps(tw.elapsed, tw.cap, out.truncated)
+    for k in range(tw.raw.shape[0]):
+        for i in range(tw.indices.shape[0]):
+            out.obs[k, i] = tw.raw[k, tw.indices[i]]
+    if tw.maps and tw.offset.shape[0]:
+        _scale_and_exponents(out.obs, tw.offset, tw.scale, np.zeros((0, 0), out.obs.dtype),
+                             tw.offset[:0], out.obs)  # fmt: skip
 
 
 @njit(cache=True)
@@ -524,19 +593,6 @@ def _acrobot_rk4(state, action, params, two, obs, reward, terminated):
         obs[k, 4], obs[k, 5] = y[2], y[3]
 
 
-def _acrobot_kernel(
-    state: np.ndarray,
-    action: np.ndarray,
-    params: np.ndarray,
-    obs: np.ndarray,
-    reward: np.ndarray,
-    terminated: np.ndarray,
-) -> None:
-    """gymnasium ``AcrobotEnv.step`` (one RK4 step of ``dt``, wrap, bound) for every member,
-    in place (:func:`_acrobot_rk4`)."""
-    _acrobot_rk4(state, action, params, 2.0, obs, reward, terminated)
-
-
 @functools.cache
 def compiled_math_matches_numpy(samples: int = 4000) -> bool:
     """Whether this machine's compiled ``cos``, ``sin`` and ``pow(x, 2)`` (libm, as numba
@@ -559,13 +615,6 @@ def compiled_math_matches_numpy(samples: int = 4000) -> bool:
 def _libm(x, two, out):
     for i in range(x.shape[0]):
         out[i, 0], out[i, 1], out[i, 2] = math.cos(x[i]), math.sin(x[i]), x[i] ** two
-
-
-_KERNELS: dict[type[gym.Env], Callable[..., None]] = {
-    CartPoleEnv: _cartpole_kernel,
-    AcrobotEnv: _acrobot_kernel,
-    MountainCarEnv: _mountaincar_kernel,
-}
 
 
 def make_vector_env(envs: list[gym.Env]) -> VectorEnv:

@@ -1,14 +1,18 @@
 """The population's step kernels compute a single run's numbers by other routes: the deferred
 ``W_1`` update and the blocked forward pass (:mod:`cdqn.network`), the compiled observation
-maps of the environment twin (:mod:`cdqn.vector_env`); and the profile adds up."""
+maps of the environment twin (:mod:`cdqn.vector_env`), several steps in one compiled call;
+and the profile adds up."""
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 import pytest
 from numba import njit
 
 from cdqn.config import EnvConfig
+from cdqn.control.factory import make_controller
 from cdqn.envs import make_env
 from cdqn.network import (
     _JIT,
@@ -23,6 +27,9 @@ from cdqn.network import (
     sgd_row,
 )
 from cdqn.profile import DDQN_PARTS, PARTS, profile_config, profile_population
+from cdqn.training.build import build_population, member_config
+from cdqn.training.member import Member
+from cdqn.training.population_loop import train_population
 from cdqn.vector_env import ClassicControlTwin, make_vector_env
 
 
@@ -123,3 +130,42 @@ def test_double_dqn_profile_shares_add_up() -> None:
     assert set(prof.shares()) == set(DDQN_PARTS)
     assert sum(prof.shares().values()) == pytest.approx(1.0)
     assert all(prof.seconds[p] > 0 for p in DDQN_PARTS[:5])
+
+
+def _trained(env: str, controller: str, step_by_step: bool) -> tuple[list[Member], Any, list]:
+    """Seeds 0–2 trained 25 episodes as a population (width 32): the members, the agent and
+    the population steps of each call of the loop."""
+    from omegaconf import OmegaConf
+
+    conf = profile_config(env, controller, 32)
+    setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
+    agent, venv = build_population(conf, setup, [0, 1, 2])
+    if not isinstance(venv, ClassicControlTwin):
+        pytest.skip("this machine steps Acrobot through its own environments")
+    cfg = OmegaConf.structured(conf)
+    members = [Member(s, member_config(cfg, s)) for s in (0, 1, 2)]
+    calls: list[int] = []
+    train_population(agent, venv, members, episodes=25, discount=conf.train.discount,
+                     q_limit=conf.train.q_limit, step_by_step=step_by_step,
+                     on_steps=calls.append)  # fmt: skip
+    return members, agent, calls
+
+
+@pytest.mark.parametrize(("env", "controller"), [("cartpole", "hinf"), ("acrobot", "h2")])
+def test_steps_run_ahead_in_one_call_as_step_by_step(env: str, controller: str) -> None:
+    """A controlled population on a twin takes several steps per compiled call
+    (``ControlledPopulation.run``), with the numbers of one step per call: the same returns,
+    signal rows, parameters and exploration (CartPole's ε per random action, Acrobot's per
+    episode and its scaled observations)."""
+    ahead, agent, calls = _trained(env, controller, step_by_step=False)
+    single, reference, steps = _trained(env, controller, step_by_step=True)
+    assert set(steps) == {1} and max(calls) > 1 and sum(calls) == sum(steps)
+    for a, b in zip(ahead, single, strict=True):
+        assert a.status == b.status == "FINISHED"
+        assert a.returns == b.returns and len(a.returns) == 25
+        assert np.array_equal(a.signals.rows(0), b.signals.rows(0))
+    agent.flush()
+    reference.flush()
+    for a, b in zip(agent.net.params, reference.net.params, strict=True):
+        assert np.array_equal(a, b)
+    assert np.array_equal(agent.epsilon, reference.epsilon)

@@ -65,7 +65,7 @@ from cdqn.network import (
     sgd_deferred_row,
     td_row,
 )
-from cdqn.vector_env import VectorStep
+from cdqn.vector_env import TwinArrays, VectorStep, twin_step
 
 NO_CONTROL, STATIC_GAIN, STATE_SPACE, SCHEDULED_LQR = 0, 1, 2, 3
 DONE, CHECK = 1, 2
@@ -95,6 +95,21 @@ class StepSettings(NamedTuple):
     bootstrap_terminal: bool
 
 
+class StagedLoop(NamedTuple):
+    """What :meth:`ControlledPopulation.run` writes for the loop: :class:`StepLog`'s ``ep``,
+    ``t`` and ``ret``, the signal rows of several steps ``(steps, K, 10)`` from row
+    ``start`` on, the last step's environment outputs ``out`` and the divergence test's
+    ``q_limit``."""
+
+    ep: np.ndarray
+    t: np.ndarray
+    ret: np.ndarray
+    rows: np.ndarray
+    start: int
+    out: VectorStep
+    q_limit: float
+
+
 class StepLog(NamedTuple):
     """What a population's step writes for the loop, per member: episode ``ep`` ``(K,)``,
     step ``t`` (counted), return ``ret`` (the reward added), the signal ``rows`` ``(K, 10)``,
@@ -106,6 +121,16 @@ class StepLog(NamedTuple):
     rows: np.ndarray
     flags: np.ndarray
     loss_seen: np.ndarray
+
+
+class PlanView(NamedTuple):
+    """The arrays of an :class:`ExplorationPlan` as the kernels take them."""
+
+    plan: np.ndarray
+    uniform: np.ndarray
+    epsilon: np.ndarray
+    decision: np.ndarray
+    per_episode: bool
 
 
 class ControllerView(NamedTuple):
@@ -226,15 +251,24 @@ class ExplorationPlan:
 
     def next(self) -> np.ndarray:
         """This step's decisions ``(K,)``: a random action, or −1 for the greedy one."""
-        if self.pos == len(self.plan):
-            for k in range(len(self.rngs)):
-                self._draw(k, 0)
-            self.pos = 0
+        self.refill()
         self.pos += 1
         if not self.per_episode:
             return self.plan[self.pos - 1]
         decide(self.uniform[self.pos - 1], self.plan[self.pos - 1], self.epsilon, self.decision)
         return self.decision
+
+    def refill(self) -> None:
+        """Draw the next block of decisions once every one drawn has been taken."""
+        if self.pos == len(self.plan):
+            for k in range(len(self.rngs)):
+                self._draw(k, 0)
+            self.pos = 0
+
+    @property
+    def view(self) -> PlanView:
+        """The plan as :func:`_run_kernel` takes it."""
+        return PlanView(self.plan, self.uniform, self.epsilon, self.decision, self.per_episode)
 
     def start_episode(self, i: int) -> None:
         """``eps_schedule=episode``: member ``i``'s ε falls by ``eps_dec`` (to ``eps_end``)."""
@@ -404,6 +438,27 @@ class ControlledPopulation:
             tuple(self.deferred), actions, tuple(step), tuple(self.settings),
             tuple(self.controller.view), self.x_e, tuple(log), loop.q_limit,
         )  # fmt: skip
+
+    def run(self, obs: np.ndarray, twin: TwinArrays, loop: StagedLoop, steps: int) -> int:
+        """Up to ``steps`` population steps in one compiled call (:func:`_run_kernel`):
+        each is :meth:`act` on ``obs``, :func:`cdqn.vector_env.twin_step` into
+        ``loop.out``, :meth:`update` with its signal rows in ``loop.rows[loop.start + n]``,
+        and ``obs`` becomes ``loop.out.obs``.  It stops after the first step that flags a
+        member (:attr:`flags`), before a step the exploration plan or ``loop.rows`` has no
+        row for, and after ``steps``.  Returns the steps taken; each member's numbers are
+        those of :meth:`act`, :meth:`cdqn.vector_env.ClassicControlTwin.step` and
+        :meth:`update` step by step."""
+        self.explore.refill()
+        limit = min(steps, len(self.explore.plan) - self.explore.pos, len(loop.rows) - loop.start)
+        taken = _run_kernel(
+            tuple(self.net.params), tuple(self.passes), tuple(self.scratch),
+            tuple(self.deferred), tuple(self.explore.view), self.explore.pos, tuple(twin), obs,
+            self.actions, tuple(loop.out), tuple(self.settings), tuple(self.controller.view),
+            self.x_e, (loop.ep, loop.t, loop.ret, loop.rows, self.flags, self.loss_seen),
+            loop.start, loop.q_limit, limit,
+        )  # fmt: skip
+        self.explore.pos += taken
+        return taken
 
     def replay(self, k: int, tail: Transitions, repeats: int, q_limit: float) -> int:
         """Episodic replay of member ``k`` (:func:`_replay_kernel`); returns the number of
@@ -623,6 +678,31 @@ def _update_kernel(net, passes, scratch, pending, actions, step, settings, contr
         healthy = math.isfinite(u + xe + loss) and max(abs(q1), abs(q2)) <= q_limit
         flagged += flag_step(lg, k, healthy, st.terminated[k] or st.truncated[k])
     return flagged
+
+
+@njit(cache=True)
+def _run_kernel(net, passes, scratch, pending, explore, pos, twin, obs, actions, out, settings,
+                controller, x_e, log, start, q_limit, limit):  # fmt: skip
+    """:meth:`ControlledPopulation.run`: per step, the plan's decisions (as
+    :meth:`ExplorationPlan.next`), :func:`_act_kernel`, :func:`cdqn.vector_env.twin_step`,
+    :func:`_update_kernel` into the rows ``start + n`` of ``log``'s rows ``(·, K, 10)``;
+    returns the steps taken."""
+    e, st = PlanView(*explore), VectorStep(*out)
+    ep, t, ret, rows, flags, loss_seen = log
+    for n in range(limit):
+        decisions = e.plan[pos + n]
+        if e.per_episode:
+            decide(e.uniform[pos + n], decisions, e.epsilon, e.decision)
+            decisions = e.decision
+        _act_kernel(net, passes, pending, obs, decisions, actions)
+        twin_step(twin, actions, out)
+        flagged = _update_kernel(net, passes, scratch, pending, actions, out, settings,
+                                 controller, x_e, (ep, t, ret, rows[start + n], flags,
+                                 loss_seen), q_limit)  # fmt: skip
+        obs[:] = st.obs
+        if flagged:
+            return n + 1
+    return limit
 
 
 @njit(cache=True)

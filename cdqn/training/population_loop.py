@@ -38,7 +38,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from cdqn.agents.base import LoopState, StepRecord
-from cdqn.agents.controlled_population import CHECK, DONE, ControlledPopulation
+from cdqn.agents.controlled_population import CHECK, DONE, ControlledPopulation, StagedLoop
 from cdqn.agents.episodic_replay import PopulationTail, Transitions, qualifies
 from cdqn.config import ReplayConfig
 from cdqn.control.box import Box
@@ -54,10 +54,14 @@ from cdqn.training.loop import EpisodeStats
 from cdqn.training.loop import episode_stats as episode_stats  # cdqn.profile times it here
 from cdqn.training.member import Member
 from cdqn.training.signals import COLUMNS
-from cdqn.vector_env import VectorEnv
+from cdqn.vector_env import ClassicControlTwin, VectorEnv, VectorStep
 
 if TYPE_CHECKING:
     from cdqn.agents.base import PopulationAgent as Population
+
+RUN_AHEAD = 256
+"""Most population steps between two looks at ``should_stop`` and the checkpoint schedule
+(a step that ends an episode or needs the divergence check returns earlier)."""
 
 _RECORD = tuple(column(c) for c in StepRecord._fields)
 """Indices of a :class:`StepRecord`'s fields among the signal columns."""
@@ -187,6 +191,8 @@ def train_population(
     checkpoints: Checkpoints | None = None,
     replay: ReplayConfig | None = None,
     box: Box | None = None,
+    step_by_step: bool = False,
+    on_steps: Callable[[int], None] | None = None,
 ) -> None:
     """The training loop of :func:`cdqn.training.loop.train` for all members at once.
 
@@ -198,19 +204,32 @@ def train_population(
     :func:`cdqn.training.loop.train` does it; ``box``: the design's NTK box, for
     ``theta1_outside_box``, ``ratio_below_box`` and ``ratio_above_box``.
 
+    A controlled population on a twin without radial features takes up to
+    :data:`RUN_AHEAD` steps per compiled call (:meth:`ControlledPopulation.run`) and
+    returns to this loop after a step that ends a member's episode or needs the divergence
+    check, with the same numbers as step by step; ``step_by_step`` (for the profiler)
+    takes one step per call of each part.  ``should_stop`` is asked, and ``on_steps`` told
+    the population steps taken, after each call.
+
     ``checkpoints``: when and how members are captured and written (module docstring);
     with every member's signal rows flushed.  A member with a ``carry`` continues from it
     instead of starting with a reset; one without starts its next episode with a reset,
     seeded with its seed at its first episode.
     """
     ends = _Ends(episodes, discount, q_limit, box, on_episode)
-    batch = _Batch(agent, venv, list(members), checkpoints, replay)
+    batch = _Batch(agent, venv, list(members), checkpoints, replay, step_by_step)
     bar = tqdm(total=episodes * len(members), disable=not progress, unit="ep", leave=True)
     steps = 0
     try:
         while batch.members:
-            leaving = batch.step(ends, bar)
-            steps += 1
+            # one step first: a stop asked while the runs opened (a trial's time cap) ends
+            # the loop before any episode does, as step by step
+            limit = RUN_AHEAD if steps else 1
+            limit = limit if max_steps is None else min(limit, max_steps - steps)
+            leaving, taken = batch.step(ends, bar, limit)
+            steps += taken
+            if on_steps is not None:
+                on_steps(taken)
             stop = not batch.schedule.draining and should_stop is not None and should_stop()
             if stop and batch.schedule.drain():  # each member leaves at the end of its episode
                 stop = False
@@ -246,6 +265,7 @@ class _Batch:
         members: list[Member],
         checkpoints: Checkpoints | None,
         replay: ReplayConfig | None,
+        step_by_step: bool,
     ) -> None:
         self.agent, self.venv, self.members = agent, venv, members
         self.checkpoints, self.replay = checkpoints, replay
@@ -265,6 +285,13 @@ class _Batch:
         self.tail = self._tail() if replay is not None and replay.repeats > 0 else None
         self.sampled = getattr(agent, "memory", None) is not None
         """Whether the members replay sampled transitions after each step."""
+        fused = isinstance(agent, ControlledPopulation) and self.tail is None and not self.sampled
+        fused = fused and not step_by_step
+        self.twin: ClassicControlTwin | None = None
+        if fused and isinstance(venv, ClassicControlTwin) and venv.compiled:
+            self.twin = venv
+        """The environments, when the agent takes several steps on them in one compiled
+        call (:meth:`ControlledPopulation.run`)."""
 
     def _tail(self) -> PopulationTail:
         """The transitions of each member's episode in progress (episodic replay)."""
@@ -296,9 +323,23 @@ class _Batch:
     def capture_all(self) -> list[tuple[Member, Any]]:
         return self.capture_now(list(enumerate(self.members)))
 
-    def step(self, ends: _Ends, bar: tqdm) -> list[int]:
-        """One population step; the rows of the members that leave the batch."""
+    def step(self, ends: _Ends, bar: tqdm, limit: int) -> tuple[list[int], int]:
+        """Population steps, at most ``limit``, up to the first that flags a member (one at
+        a time, or several in one compiled call where the agent and environments allow it:
+        :meth:`ControlledPopulation.run`); the rows of the members that leave the batch, and
+        the steps taken."""
         agent = self.agent
+        if self.twin is not None:
+            assert isinstance(agent, ControlledPopulation)
+            if self.staging.n == len(self.staging.data):
+                self.staging.flush_all(self.members)
+            out = self.twin.outputs()
+            staged = StagedLoop(self.ep, self.t, self.ret, self.staging.data, self.staging.n,
+                                out, ends.q_limit)  # fmt: skip
+            taken = agent.run(self.obs, self.twin.arrays(), staged, limit)
+            self.staging.n += taken
+            rows = self.staging.data[self.staging.n - 1]
+            return self._after(out, rows, int(agent.flags.any()), None, ends, bar), taken
         actions = agent.act(self.obs)
         out = self.venv.step(actions)
         rows = self.staging.next_block(self.members)
@@ -311,6 +352,21 @@ class _Batch:
             assert isinstance(agent, ControlledPopulation)
             failed = agent.replay_sampled(self.obs, actions, out, ends.q_limit)
         self.obs = out.obs
+        return self._after(out, rows, flagged, failed, ends, bar), 1
+
+    def _after(
+        self,
+        out: VectorStep,
+        rows: np.ndarray,
+        flagged: int,
+        failed: np.ndarray | None,
+        ends: _Ends,
+        bar: tqdm,
+    ) -> list[int]:
+        """The members a step flagged (``out``: its environment outputs, ``rows``: its
+        signal rows, ``failed``: sampled replay's failures): the divergence check and
+        episode ends; the rows of the members that leave the batch."""
+        agent = self.agent
         leaving: list[int] = []
         if flagged or (failed is not None and failed.max() >= 0):
             flags = agent.flags
