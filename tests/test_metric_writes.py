@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 import pytest
 from mlflow.entities import Metric
@@ -46,24 +47,45 @@ def client(tmp_path: Path) -> MlflowClient:
     return MlflowClient(f"sqlite:///{tmp_path}/mlflow.db")
 
 
-def test_a_sql_store_holds_what_log_batch_would(client: MlflowClient) -> None:
+def _counted_log_batch(client: MlflowClient, monkeypatch: pytest.MonkeyPatch) -> list[str]:
+    """The run ids of the client's ``log_batch`` calls from now on (it still writes)."""
+    calls: list[str] = []
+    original = client.log_batch
+
+    def log_batch(run_id: str, **kwargs: Any) -> None:
+        calls.append(run_id)
+        original(run_id, **kwargs)
+
+    monkeypatch.setattr(client, "log_batch", log_batch)
+    return calls
+
+
+def test_a_sql_store_holds_what_log_batch_would(
+    client: MlflowClient, monkeypatch: pytest.MonkeyPatch
+) -> None:
     exp = client.create_experiment("writes")
     ours, theirs = (client.create_run(exp).info.run_id for _ in range(2))
+    calls = _counted_log_batch(client, monkeypatch)
     for first, last in ((0, 40), (40, 41), (41, 300)):
         batch = _metrics(first, last)
         log_metrics(client, ours, batch)
         client.log_batch(theirs, metrics=batch)
+    assert ours not in calls  # one session of its own on a SQL store
     assert _history(client, ours) == _history(client, theirs)
     assert len(_history(client, ours)["loss_mean"]) == 300
     assert client.get_run(ours).data.metrics == client.get_run(theirs).data.metrics
     assert client.get_run(ours).data.metrics["episode_return"] == 299 * 1.5
 
 
-def test_values_written_again_are_kept_once(client: MlflowClient) -> None:
+def test_values_written_again_are_kept_once(
+    client: MlflowClient, monkeypatch: pytest.MonkeyPatch
+) -> None:
     run_id = client.create_run(client.create_experiment("again")).info.run_id
     log_metrics(client, run_id, _metrics(0, 50))
     before = _history(client, run_id)
+    calls = _counted_log_batch(client, monkeypatch)
     log_metrics(client, run_id, _metrics(30, 60))  # 30..49 already stored
+    assert calls == [run_id]  # the insert failed as a whole; log_batch skips what is stored
     after = _history(client, run_id)
     assert all(len(after[k]) == 60 for k in KEYS)
     assert {k: v[:50] for k, v in after.items()} == before
