@@ -254,6 +254,7 @@ class ClassicControlTwin:
         self.base, self.indices, self.cap = w.base, w.indices, w.cap
         self.scaling, self.features = w.scaling, w.features
         self.kind = type(self.base)
+        self._arrays: TwinArrays | None = None
         self.state = np.zeros((len(envs), {CartPoleEnv: 4, AcrobotEnv: 4}.get(self.kind, 2)))
         self.elapsed = np.zeros(len(envs), dtype=np.int64)
         e = self.base
@@ -312,6 +313,7 @@ class ClassicControlTwin:
         self.envs = [self.envs[i] for i in keep]
         self.bases = [self.bases[i] for i in keep]
         self.state, self.elapsed = self.state[keep], self.elapsed[keep]
+        self._arrays = None
 
     checkpointable = True
 
@@ -342,7 +344,12 @@ class ClassicControlTwin:
         return self.features is None
 
     def arrays(self) -> TwinArrays:
-        """The twin as :func:`twin_step` takes it (views of its arrays)."""
+        """The twin as :func:`twin_step` takes it (its arrays, until :meth:`select`)."""
+        if self._arrays is None:
+            self._arrays = self._bundle()
+        return self._arrays
+
+    def _bundle(self) -> TwinArrays:
         k, d = len(self.state), self._raw_size
         none = np.zeros(0, np.float32)
         offset, scale = (

@@ -1,4 +1,5 @@
-"""The controlled agent of a population: ``K`` members' steps as two compiled calls.
+"""The controlled agent of a population: ``K`` members' steps as two compiled calls, or
+several steps in one.
 
 :class:`ControlledPopulation` is :class:`cdqn.agents.ControlledAgent` (fast path) for ``K``
 members at once.  Per step and member it runs exactly the single agent's algorithm
@@ -27,6 +28,12 @@ parameters are read from outside.  Exploration is drawn ahead in blocks
 Sampled replay (:mod:`cdqn.agents.replay`) is a third compiled call after the update
 (:func:`_sampled_kernel`), from each member's buffer with the indices its own generator
 draws as the single run's :class:`~cdqn.agents.replay.ReplayBuffer` draws them.
+
+On a compiled environment twin (:func:`cdqn.vector_env.twin_step`) without sampled or
+episodic replay, :meth:`ControlledPopulation.run` takes act, the environments' step and
+update for up to the exploration plan's next block in one compiled call
+(:func:`_run_kernel`), and returns after the first step that flags a member: the loop's
+Python is paid once per episode end rather than once per step.
 """
 
 from __future__ import annotations

@@ -3,7 +3,8 @@
 ``python -m cdqn.train train.population=10 seed=0`` trains seeds 0, 1, …, 9 together.  The
 members' networks are stacked and each step of all of them (forward passes, NTK,
 controllers, SGD steps, signal rows) is two compiled calls built from the row functions a
-single run uses (:mod:`cdqn.agents.controlled_population`); their environments step as one
+single run uses, or one call for many steps (:mod:`cdqn.agents.controlled_population`);
+their environments step as one
 (:mod:`cdqn.vector_env`); :func:`cdqn.training.population_loop.train_population` is the
 loop.  So the per-step Python of the trainer, the environment and the bookkeeping is paid
 once for ``K`` members.  This module takes the members' runs through their lifecycle

@@ -3,8 +3,10 @@
 :func:`train_population` is :func:`cdqn.training.loop.train` for all members at once: one
 call of the batched agent (:mod:`cdqn.agents.controlled_population`,
 :mod:`cdqn.agents.ddqn_population`) and of the vectorised environment
-(:mod:`cdqn.vector_env`) per population step, each member's signal rows and divergence test
-as a single run has them, members leaving the batch when they finish or diverge.
+(:mod:`cdqn.vector_env`) per population step, or one call for the steps up to the next that
+needs the loop (:meth:`~cdqn.agents.controlled_population.ControlledPopulation.run`), each
+member's signal rows and divergence test as a single run has them, members leaving the
+batch when they finish or diverge.
 
 Checkpoints (:class:`Checkpoints`, written by :mod:`cdqn.training.population`) follow one
 of two schedules, by what the environments allow (:mod:`cdqn.vector_env`):
