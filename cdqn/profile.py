@@ -136,15 +136,21 @@ def _timed_episode_stats(timers: _Timers) -> Iterator[None]:
         population_loop.episode_stats = original
 
 
-def profile_population(conf: Config, k: int, steps: int, warmup: int) -> Profile:
-    """Train seeds ``conf.seed … conf.seed+k−1`` as a population for ``warmup + steps``
-    population steps and time its parts (module docstring)."""
-    torch.set_num_threads(1)
+def fresh_population(conf: Config, k: int) -> tuple[Any, Any, list[Member]]:
+    """Seeds ``conf.seed … conf.seed+k−1`` of ``conf`` as a new population: its agent,
+    vectorised environments and members (no tracking store)."""
     setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
     seeds = list(range(conf.seed, conf.seed + k))
     agent, venv = build_population(conf, setup, seeds)
     cfg = OmegaConf.structured(conf)
-    members = [Member(s, member_config(cfg, s)) for s in seeds]
+    return agent, venv, [Member(s, member_config(cfg, s)) for s in seeds]
+
+
+def profile_population(conf: Config, k: int, steps: int, warmup: int) -> Profile:
+    """Train seeds ``conf.seed … conf.seed+k−1`` as a population for ``warmup + steps``
+    population steps and time its parts (module docstring)."""
+    torch.set_num_threads(1)
+    agent, venv, members = fresh_population(conf, k)
     ddqn = isinstance(agent, DDQNPopulation)
     prof = Profile(seconds=dict.fromkeys(DDQN_PARTS if ddqn else PARTS, 0.0))
     timers = _Timers(prof)
@@ -190,11 +196,7 @@ def trained_us_per_member_step(conf: Config, k: int, steps: int, warmup: int) ->
     population steps less that of ``warmup``, each from a fresh population."""
 
     def seconds(n: int) -> float:
-        setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
-        seeds = list(range(conf.seed, conf.seed + k))
-        agent, venv = build_population(conf, setup, seeds)
-        cfg = OmegaConf.structured(conf)
-        members = [Member(s, member_config(cfg, s)) for s in seeds]
+        agent, venv, members = fresh_population(conf, k)
         t0 = clock()
         train_population(agent, venv, members, episodes=10**9, discount=conf.train.discount,
                          q_limit=conf.train.q_limit, max_steps=n)  # fmt: skip

@@ -12,7 +12,6 @@ import pytest
 from numba import njit
 
 from cdqn.config import EnvConfig
-from cdqn.control.factory import make_controller
 from cdqn.envs import make_env
 from cdqn.network import (
     _JIT,
@@ -26,8 +25,7 @@ from cdqn.network import (
     sgd_deferred_row,
     sgd_row,
 )
-from cdqn.profile import DDQN_PARTS, PARTS, profile_config, profile_population
-from cdqn.training.build import build_population, member_config
+from cdqn.profile import DDQN_PARTS, PARTS, fresh_population, profile_config, profile_population
 from cdqn.training.member import Member
 from cdqn.training.population_loop import train_population
 from cdqn.vector_env import ClassicControlTwin, make_vector_env
@@ -135,15 +133,10 @@ def test_double_dqn_profile_shares_add_up() -> None:
 def _trained(env: str, controller: str, step_by_step: bool) -> tuple[list[Member], Any, list]:
     """Seeds 0–2 trained 25 episodes as a population (width 32): the members, the agent and
     the population steps of each call of the loop."""
-    from omegaconf import OmegaConf
-
     conf = profile_config(env, controller, 32)
-    setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
-    agent, venv = build_population(conf, setup, [0, 1, 2])
+    agent, venv, members = fresh_population(conf, 3)
     if not isinstance(venv, ClassicControlTwin):
         pytest.skip("this machine steps Acrobot through its own environments")
-    cfg = OmegaConf.structured(conf)
-    members = [Member(s, member_config(cfg, s)) for s in (0, 1, 2)]
     calls: list[int] = []
     train_population(agent, venv, members, episodes=25, discount=conf.train.discount,
                      q_limit=conf.train.q_limit, step_by_step=step_by_step,
