@@ -90,7 +90,7 @@ def synthesize(cfg: DictConfig) -> str:
         raise ConfigError(
             f"controller={conf.controller.name!r}: synthesize designs hinf, hinf_f or h2"
         )
-    from cdqn.control.design import cache_root, design_inputs
+    from cdqn.control.design import cache_root, design_inputs, with_box_source
     from cdqn.control.synthesis import load_or_design
 
     box = None
@@ -116,7 +116,7 @@ def synthesize(cfg: DictConfig) -> str:
         for item in folder.iterdir():
             if item.is_file():
                 shutil.copy2(item, out / item.name)
-    text = (out / "report.txt").read_text().rstrip()
+    text = with_box_source((out / "report.txt").read_text().rstrip(), inputs.box.source)
     if design is None:
         text += f"\n(from cache: {folder})"
     elif not syn.cache:

@@ -10,6 +10,7 @@ import json
 import re
 import tempfile
 from pathlib import Path
+from types import SimpleNamespace
 
 import gymnasium as gym
 import numpy as np
@@ -28,6 +29,7 @@ from cdqn.network import NetworkSpec, QNetwork
 from cdqn.ntk_bounds import measured_box
 from cdqn.training.run import run
 from cdqn.training.sweep import config_hash
+from cdqn.tuning.presets import write_preset
 from cdqn.vector_env import ClassicControlTwin, GymLoop, make_vector_env
 from tests.conftest import compose_config
 from tests.helpers import episode_returns, run_cli, runs_of, signals_after_episode
@@ -216,6 +218,41 @@ def test_a_weights_preset_chosen_for_the_run_is_kept(tmp_path: Path) -> None:
         adopted = adopt(compose_config(cap))
         assert adopted.conf.weights.name == cap[0].removeprefix("env=")
         assert adopted.box_source == "config"
+
+
+def test_a_tuned_preset_on_another_id_is_that_ids_run(tmp_path: Path) -> None:
+    """A tuned preset sets the environment it was tuned on (id, kwargs, cap, threshold, box);
+    with another ``env.id`` the run is that id's: its label, cap and threshold, no foreign
+    kwargs, a measured box, the preset's exploration kept; other kwargs on its own id
+    relabel it; its own id is left as it is."""
+    tuned_on = [f"env.id={TOY}", "+env.kwargs.step_reward=-2.0", "controller=hinf_f"]
+    with command_line(tuned_on):
+        cfg = adopt(compose_config(tuned_on)).cfg
+    cfg.train.eps_dec = 0.0123  # as a study writes it: the box its design was certified on
+    cfg.controller.synthesis.ntk_bounds = "config"
+    cfg.weights.theta_bounds.theta1 = [3.0, 4.0]
+    best = SimpleNamespace(number=3, value=-20.0, params={})
+    tune = SimpleNamespace(study=f"{KWARGS_LABEL}-hinf_f", trials=1, seeds=1, seed=100, space={})
+    write_preset(cfg, "tuned_toy", tmp_path, best, tune)
+    base = ["controller=hinf_f", "weights=tuned_toy", f"hydra.searchpath=[file://{tmp_path}]"]
+    for extra, name in [
+        ([], KWARGS_LABEL),
+        (["env.kwargs.step_reward=-3.0"], f"{LABEL}.step_reward--3.0"),
+        (["env.id=Acrobot-v1"], "Acrobot-v1"),
+        (["env.id=Acrobot-v1", "env.max_episode_steps=40"], "Acrobot-v1-cap40"),
+    ]:
+        with command_line(base + extra):
+            adopted = adopt(compose_config(base + extra))
+            assert adopt(adopted.cfg).change is None  # idempotent
+        conf = adopted.conf
+        assert conf.env.name == name and conf.train.eps_dec == 0.0123, extra
+        own_id = not any(e.startswith("env.id") for e in extra)
+        assert (adopted.change is None) == (extra == [])
+        assert adopted.box_source == ("config" if own_id else "measured")
+        if not own_id:
+            assert conf.env.kwargs == {} and conf.env.solve_threshold == -100.0
+            assert conf.env.max_episode_steps == (40 if len(extra) == 2 else 500)
+            assert adopted.change.startswith(f"weights=tuned_toy was tuned on {TOY}: ")
 
 
 def test_generic_weights_on_a_presets_id_measure_their_box() -> None:

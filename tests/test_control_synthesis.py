@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 from cdqn.config import Config
 from cdqn.control.box import NTKBox
 from cdqn.control.certificate import ControllerMatrices, certify, max_real_poles
-from cdqn.control.design import box_from_config, design_inputs
+from cdqn.control.design import box_from_config, design_inputs, with_box_source
 from cdqn.control.errors import DesignError
 from cdqn.control.factory import make_controller, synthesized_controller
 from cdqn.control.hinf import (
@@ -118,6 +118,24 @@ def test_training_uses_the_synthesised_controller(cache: Path) -> None:
     assert setup.artifacts is not None and (setup.artifacts / "cover.png").is_file()
     u = [setup.controller.step(0.01, 1.0, 1.0, 300.0, 300.0) for _ in range(3)]
     assert all(np.isfinite(u)) and any(v != 0.0 for v in u)
+
+
+def test_a_cached_design_names_the_box_of_the_run_it_serves(cache: Path) -> None:
+    """The same box measured on two environments is one cache entry; each run's record and
+    report name its own environment, and the cached files name none."""
+    base = ["controller.design=synthesize", f"controller.synthesis.cache_dir={cache}"]
+    texts = []
+    for label in ("EnvA-v0", "EnvB-v0"):
+        conf = _conf("mountaincar", "hinf", [*base, f"weights.theta_bounds.measured_on={label}"])
+        setup = make_controller(conf.controller, conf.weights, conf.train.discount, conf.train.lr)
+        assert setup.design["box_source"] == f"measured on {label}"
+        cached = (setup.artifacts / "report.txt").read_text()
+        assert "EnvA" not in cached and "EnvB" not in cached
+        assert "EnvA" not in json.dumps(
+            json.loads((setup.artifacts / "controller.json").read_text())
+        )
+        texts.append(with_box_source(cached, setup.design["box_source"]))
+    assert "NTK box (measured on EnvB-v0): Θ1 ∈" in texts[1] and "EnvA" not in texts[1]
 
 
 def test_fixed_structure_design_passes_certificate(cache: Path) -> None:

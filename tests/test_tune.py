@@ -33,6 +33,7 @@ from cdqn.tuning.space import (
     fit_to_observation,
     highest_floor,
     log_horizon_of,
+    lowest,
     sample,
 )
 from cdqn.tuning.study import Study, _sampler, _with_controller
@@ -679,18 +680,26 @@ def test_the_discount_dimension_is_a_log_horizon(tmp_path: Path) -> None:
 
 def test_horizons_no_box_allows_are_not_offered() -> None:
     """A static loop is stable over a box only for γ_eff < 1/ρ_max: with Θ2/Θ1 up to 1.195
-    (CartPole's measured box) the positive centres go, at up to 1.05 the ones above 0.952
-    (h = 1 stays: its range starts at γ(0.85) = 0.859), at up to 1.0 none; a range's high
-    end is lowered to the last centre whose range starts below the bound."""
+    (CartPole's measured box) the positive centres give way to h = 0.9, the longest the box
+    allows (its range starts at γ(0.75) = 0.822 < 0.837); at up to 1.05 the ones above 0.952
+    go (h = 1 stays: its range starts at γ(0.85) = 0.859) for h = 1.45; at up to 1.0 none; a
+    range's high end is lowered to the last centre whose range starts below the bound."""
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
         space = OmegaConf.to_object(compose("tune", overrides=["controller=hinf_f"]).tune).space
     offered = space["gamma_eff"].choices
     assert offered == [-2.3, -2.0, -1.0, 1.0, 1.5, 2.0, 2.3]
-    assert fit_to_box(space, 1.195)["gamma_eff"].choices == [-2.3, -2.0, -1.0]
-    assert fit_to_box(space, 1.05)["gamma_eff"].choices == [-2.3, -2.0, -1.0, 1.0]
+    assert fit_to_box(space, 1.195)["gamma_eff"].choices == [-2.3, -2.0, -1.0, 0.9]
+    assert fit_to_box(space, 1.05)["gamma_eff"].choices == [-2.3, -2.0, -1.0, 1.0, 1.45]
+    for rho in (1.195, 1.05, 1.02, 1.5):
+        fitted = fit_to_box(space, rho)["gamma_eff"]
+        assert all(stable_over_box(lowest(fitted, c), rho) for c in fitted.choices)
+        assert not stable_over_box(lowest(fitted, max(fitted.choices) + 0.05), rho)
     assert fit_to_box(space, 1.0) == space
     positive = {"gamma_eff": dataclasses.replace(space["gamma_eff"], choices=[1.0, 2.0])}
-    assert fit_to_box(positive, 1.2) == positive  # nothing would remain: kept, and said so
+    assert fit_to_box(positive, 1.2)["gamma_eff"].choices == [0.9]
+    plain = {"gamma_eff": dataclasses.replace(space["gamma_eff"], choices=[0.9, 0.95],
+                                              horizon=False, width=None)}  # fmt: skip
+    assert fit_to_box(plain, 1e6) == plain  # nothing would remain: kept, and said so
     ranged = {"gamma_eff": dataclasses.replace(space["gamma_eff"], choices=None, low=-2.5,
                                                high=2.5)}  # fmt: skip
     top = fit_to_box(ranged, 1.195)["gamma_eff"].high
@@ -702,7 +711,8 @@ def test_horizons_no_box_allows_are_not_offered() -> None:
 def test_a_study_offers_the_horizons_its_measured_boxes_allow(tmp_path: Path) -> None:
     """A ``hinf_f`` study on a measured box measures each offered observation map's box once,
     before any trial, and offers only the γ_eff centres certifiable on one of them: every
-    offered centre's range passes the same check the synthesis makes."""
+    offered centre's range passes the same check the synthesis makes, the positive centres it
+    rules out giving way to the longest positive one it allows."""
     over = [*_overrides(tmp_path, "boxfit", 1)[:5], "controller=hinf_f",
             "controller.synthesis.ntk_bounds=measured", "env=cartpole"]  # fmt: skip
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
@@ -713,9 +723,11 @@ def test_a_study_offers_the_horizons_its_measured_boxes_allow(tmp_path: Path) ->
     rho_max = min(ratio[1] for _, ratio in study.boxes.values())
     assert rho_max > 1.0  # CartPole's box at width 16 reaches past Θ2 = Θ1
     kept = study.space["gamma_eff"].choices
-    assert kept and set(kept) < set(OmegaConf.to_object(cfg.tune).space["gamma_eff"].choices)
+    offered = OmegaConf.to_object(cfg.tune).space["gamma_eff"].choices
+    assert kept and set(kept) - set(offered) == {max(kept)} and max(kept) not in offered
     for c in kept:
         assert stable_over_box(discount_of(c - 0.15), rho_max)
+    assert not stable_over_box(discount_of(max(kept) + 0.05 - 0.15), rho_max)
 
 
 def test_conditional_dimensions_are_sampled_only_when_their_condition_holds() -> None:

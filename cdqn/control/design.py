@@ -29,8 +29,11 @@ if TYPE_CHECKING:
     from cdqn.control.uncertainty import CoverFit
     from cdqn.control.weights import SisoWeight
 
-DESIGN_VERSION = 7
-"""Bumped whenever the synthesis changes its results; part of the cache key."""
+DESIGN_VERSION = 8
+"""Bumped whenever the synthesis changes its results or its artefacts; part of the cache key.
+A cache entry holds nothing of the environment it was first designed for: the box's source
+(:attr:`NTKBox.source`) is not a design input, so the record and report leave it to their
+reader (:func:`with_box_source`)."""
 KINDS = ("hinf", "hinf_f")
 """Controllers that are synthesised (h2 is solved per step)."""
 
@@ -180,7 +183,6 @@ class ControllerDesign:
             "convention": "dQ1/dt = Theta1 (r + gamma Q2hat - Q1 + u)",
             "source": "synthesized",
             "nominal": list(self.box.nominal),
-            "box_source": self.box.source,
             "plant": self.certificate.plant,
             "certificate": self.certificate.to_dict(),
             "seconds": self.seconds,
@@ -203,8 +205,19 @@ class ControllerDesign:
 # ----------------------------------------------------------------------------- artefacts
 
 
+BOX_LINE = "NTK box:"
+"""How the report's line of the box begins; :func:`with_box_source` names the source there."""
+
+
+def with_box_source(report_text: str, source: str) -> str:
+    """A cached design's report with the source of the box it serves now (``config``,
+    ``measured``, ``measured on <label>, seed <n>``): the same design serves every box of the
+    same numbers, whichever environment it was measured on."""
+    return report_text.replace(BOX_LINE, f"NTK box ({source}):", 1)
+
+
 def report(design: ControllerDesign) -> str:
-    """Human-readable design report."""
+    """Human-readable design report (the box's line without its source: :data:`BOX_LINE`)."""
     c = design.certificate
     plant = c.plant
     lines = [
@@ -215,7 +228,7 @@ def report(design: ControllerDesign) -> str:
             if plant == "gradient_flow"
             else "[Θ1, 0]: the paper's Eq. controlled_Q)"
         ),
-        f"NTK box ({design.box.source}): Θ1 ∈ {list(design.box.theta1)}, Θ2/Θ1 ∈ "
+        f"{BOX_LINE} Θ1 ∈ {list(design.box.theta1)}, Θ2/Θ1 ∈ "
         f"{list(design.box.ratio)}, nominal (Θ1, Θ2) = "
         f"({design.box.nominal[0]:.4g}, {design.box.nominal[1]:.4g}), γ_discount = "
         f"{design.discount}",

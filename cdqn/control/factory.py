@@ -59,6 +59,7 @@ def synthesized_controller(cfg: ControllerConfig, weights: WeightsConfig, discou
         record, folder, _ = load_or_design(inputs, cache_dir)
     else:
         record, folder = found
+    record = {**record, "box_source": inputs.box.source}  # this run's, not the cache entry's
     ctrl = runtime_from_record(record, lr, cfg)
     return ControllerSetup(ctrl, source="synthesized", design=record, artifacts=folder)
 

@@ -39,6 +39,13 @@ cap is the preset's task on another environment instance: labelled ``<preset>.<k
 ``cartpole.sutton_barto_reward-true``, :func:`cdqn.envs.make.kwargs_label`), with the
 preset's cap, threshold and weights.
 
+A tuned preset (``weights=tuned_<label>-<agent>``, which sets the environment it was tuned
+on) with another ``env.id`` on the command line is that id's run: labelled by it, its
+features by index and ``env.kwargs`` dropped, cap and solve threshold from its registration
+and the NTK box measured, each unless the command line gives it; the preset's observation maps,
+exploration and learning settings stay.  With other constructor arguments or another cap
+on its own id, it is relabelled.
+
 ``controller.synthesis.ntk_bounds`` becomes ``measured`` when the weights carry no box of this
 environment: ``weights=generic`` (on any id), or, for a run of an id no preset names, a
 weights preset of an environment preset of another id — unless ``weights.theta_bounds`` was
@@ -75,7 +82,7 @@ from cdqn.config import (
     to_schema,
     validate,
 )
-from cdqn.envs.make import env_label, kwargs_label, registration
+from cdqn.envs.make import EnvId, env_label, kwargs_label, registration
 
 _COMMAND_LINE: ContextVar[tuple[str, ...] | None] = ContextVar("cdqn_overrides", default=None)
 GENERIC = "generic"
@@ -118,6 +125,7 @@ def adopt(cfg: DictConfig) -> Adopted:
     changed: list[str] = []
     overrides = _overrides()
     given = _given(out, overrides)
+    tuned_on = None if preset is not None else _tuned_elsewhere(out, spec, given)
     with read_write(out):
         if preset is not None and preset.id != env.id:
             changed += _take_registration(env, preset, spec, given)
@@ -126,6 +134,8 @@ def adopt(cfg: DictConfig) -> Adopted:
         elif preset is not None and _kwargs(env):
             env.name = preset.name + kwargs_label(_kwargs(env))
             changed.append(f"named {env.name}")
+        elif tuned_on is not None:
+            changed += _leave_tuned_env(out, spec, given, tuned_on, _keys(overrides))
         if preset is None or preset.id != env.id:
             changed += _weights_of_its_own(out, given, "weights" in _keys(overrides))
         if preset is None or preset.id != env.id or out.weights.name == GENERIC:
@@ -144,6 +154,8 @@ def adopt(cfg: DictConfig) -> Adopted:
         head = f"env={preset.name} at another episode cap: "
     elif preset is not None and _kwargs(env):
         head = f"env={preset.name} with constructor arguments env.kwargs: "
+    elif tuned_on is not None:
+        head = f"weights={out.weights.name} was tuned on {tuned_on}: "
     return Adopted(out, conf, head + ", ".join(changed) if changed else None)
 
 
@@ -262,6 +274,57 @@ def _other_cap(
         env.solve_threshold = spec.reward_threshold
         changed.append(f"solve threshold {spec.reward_threshold} (its registration)")
     return changed
+
+
+def _label(env: DictConfig, spec: EnvSpec) -> str:
+    """The label of ``env`` as it stands (:func:`cdqn.envs.make.env_label`)."""
+    cap = env.max_episode_steps
+    other = cap not in (None, spec.max_episode_steps)
+    return env_label(str(env.id), _kwargs(env), cap if other else None)
+
+
+def _tuned_elsewhere(cfg: DictConfig, spec: EnvSpec, given: frozenset[str]) -> str | None:
+    """The environment a tuned preset (``extra.tuned``, :mod:`cdqn.tuning.presets`) was tuned
+    on, when the run is not that environment (the command line gives another ``env.id``,
+    constructor arguments or cap): its ``env.id``, or its label for a preset that does not
+    record the id.  None for any other configuration, or when ``env.name`` is given."""
+    tuned = OmegaConf.select(cfg, "extra.tuned", default=None)
+    if not OmegaConf.is_dict(tuned) or "env.name" in given or cfg.env.name == _label(cfg.env, spec):
+        return None
+    return str(tuned.get("env_id") or cfg.env.name)
+
+
+def _leave_tuned_env(
+    cfg: DictConfig, spec: EnvSpec, given: frozenset[str], tuned_on: str, keys: frozenset[str]
+) -> list[str]:
+    """A tuned preset's settings on another environment: labelled by this one.  On another id
+    (not only other constructor arguments or cap), the preset's environment-specific settings
+    give way to this id's unless the command line gives them: features by index and
+    ``env.kwargs`` are dropped, cap and solve threshold come from the registration, and the
+    design's NTK box is measured (the preset's is ``tuned_on``'s).  Its observation maps,
+    exploration and learning settings stay.  What changed."""
+    env = cfg.env
+    changed: list[str] = []
+    if EnvId.parse(tuned_on).label != EnvId.parse(str(env.id)).label:
+        for key in FEATURE_KEYS:
+            if env[key] is not None and f"env.{key}" not in given:
+                env[key] = None
+                changed.append(f"env.{key}=null")
+        if _kwargs(env) and not any(k.startswith("env.kwargs") for k in given):
+            env.kwargs = {}
+            changed.append("env.kwargs={}")
+        if "env.max_episode_steps" not in given:
+            env.max_episode_steps = spec.max_episode_steps
+            changed.append(f"episode cap {spec.max_episode_steps} (its registration)")
+        if "env.solve_threshold" not in given:
+            env.solve_threshold = spec.reward_threshold
+            changed.append(f"solve threshold {spec.reward_threshold} (its registration)")
+        box = {"controller.synthesis.ntk_bounds", "weights.theta_bounds"}
+        if not any(k.startswith(tuple(box)) for k in keys):
+            cfg.controller.synthesis.ntk_bounds = "measured"
+            changed.append("NTK box measured")
+    env.name = _label(env, spec)
+    return [f"named {env.name}", *changed]
 
 
 def _kwargs(env: DictConfig) -> dict[str, object]:

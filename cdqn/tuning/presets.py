@@ -73,7 +73,8 @@ def write_preset(cfg: DictConfig, name: str, folder: Path, best: Any, tune: Any)
     per member, α, the network's width and data type and, for Double DQN, its controller
     settings; a controlled agent's preset keeps the NTK box its design was certified on
     (``controller.synthesis.ntk_bounds=config``).
-    ``extra.tuned`` records the study, its budget and its search space."""
+    ``extra.tuned`` records the study, the id it was tuned on, its budget and its search space
+    (on another id, :func:`cdqn.envs.adopt` gives way to that id's settings)."""
     plain = OmegaConf.to_container(cfg, resolve=True)
     assert isinstance(plain, dict)
     weights = dict(plain["weights"], name=name)
@@ -87,7 +88,8 @@ def write_preset(cfg: DictConfig, name: str, folder: Path, best: Any, tune: Any)
     else:
         controller = {"synthesis": {"ntk_bounds": plain["controller"]["synthesis"]["ntk_bounds"]}}
     tuned = {
-        "study": tune.study, "agent": agent, "trial": best.number, "objective": best.value,
+        "study": tune.study, "env_id": env["id"], "agent": agent, "trial": best.number,
+        "objective": best.value,
         "budget": {"trials": tune.trials, "seeds": tune.seeds, "first_seed": tune.seed,
                    "episodes": int(plain["train"]["episodes"])},
         "space": {k: {f: v for f, v in asdict(p).items() if v not in (None, False)}

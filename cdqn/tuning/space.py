@@ -103,22 +103,27 @@ def fit_to_box(space: dict[str, ParamSpec], rho_max: float) -> dict[str, ParamSp
     (:func:`cdqn.control.target.stable_over_box`), so a trial whose γ_eff range starts at or
     above it is refused before it trains.  ``rho_max``: the smallest upper Θ2/Θ1 of the
     boxes of the offered observation maps (a value one of them allows stays).  A choice whose
-    range starts too high is dropped; a range's ``high`` is lowered to the last centre
-    allowed.  Where no value would remain, the dimension is kept as it is (and said so)."""
+    range starts too high is dropped, and the positive ones dropped give way to the longest
+    positive centre the boxes allow (:func:`top_centre`, on a 0.05 grid), so that a task whose
+    box rules out the offered positive horizons still has one to learn with; a range's
+    ``high`` is lowered to the last centre allowed.  Where no value would remain, the dimension
+    is kept as it is (and said so)."""
     from cdqn.control.target import stable_over_box
 
     out = dict(space)
     for name, p in space.items():
         if p.path != GAMMA_PATH:
             continue
-        half = (p.width or 0.0) / 2
         fitted: ParamSpec | None = p
         if p.choices is not None:
             allowed = [c for c in p.choices if stable_over_box(lowest(p, float(c)), rho_max)]
+            top = top_centre(p, rho_max, grid=0.05) if rho_max > 1.0 else None
+            cut = any(float(c) > 0 and c not in allowed for c in p.choices)
+            if cut and top is not None and top > max([0.0, *map(float, allowed)]):
+                allowed.append(top)
             fitted = dataclasses.replace(p, choices=allowed) if allowed else None
         elif p.low is not None and p.high is not None and rho_max > 1.0:
-            bound = 1.0 / rho_max
-            top = (log_horizon_of(bound) if p.horizon else bound) + half - 1e-9
+            top = top_centre(p, rho_max)
             fitted = dataclasses.replace(p, high=min(top, p.high)) if top > p.low else None
         if fitted is None:
             log.warning("tune.space.%s: the measured NTK boxes allow γ_eff < 1/ρ_max = %.4g, "
@@ -130,6 +135,15 @@ def fit_to_box(space: dict[str, ParamSpec], rho_max: float) -> dict[str, ParamSp
                      fitted.choices or [fitted.low, fitted.high], 1.0 / rho_max)  # fmt: skip
             out[name] = fitted
     return out
+
+
+def top_centre(p: ParamSpec, rho_max: float, grid: float | None = None) -> float:
+    """The largest value of the γ_eff dimension ``p`` whose range starts below 1/ρ_max
+    (:func:`fit_to_box`): for a horizon, h < log_horizon_of(1/ρ_max) + width/2; rounded down
+    to a multiple of ``grid`` when given (a choice's value, as a person would write it)."""
+    bound = 1.0 / rho_max
+    top = (log_horizon_of(bound) if p.horizon else bound) + (p.width or 0.0) / 2 - 1e-9
+    return top if grid is None else round(math.floor(top / grid) * grid, 10)
 
 
 def fit_to_observation(

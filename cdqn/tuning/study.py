@@ -345,7 +345,10 @@ class Study:
         if setup is not None:
             log_design(self.tracker, self.parent, setup)
             if setup.artifacts is not None and (Path(setup.artifacts) / "report.txt").is_file():
-                summary["design_report"] = (Path(setup.artifacts) / "report.txt").read_text()
+                from cdqn.control.design import with_box_source
+
+                text = (Path(setup.artifacts) / "report.txt").read_text()
+                summary["design_report"] = with_box_source(text, setup.design["box_source"])
         if t.eval_seeds > 0:
             self._evaluate(cfg, summary, metrics)
         self.tracker.metrics(self.parent, metrics)
