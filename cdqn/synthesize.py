@@ -110,12 +110,14 @@ def synthesize(cfg: DictConfig) -> str:
         box = measured_box(conf, net)
     inputs = design_inputs(conf.controller, conf.weights, conf.train.discount, conf.train.lr, box)
     syn = conf.controller.synthesis
-    _, folder, design = load_or_design(inputs, cache_root(syn) if syn.cache else None)
+    record, folder, design = load_or_design(inputs, cache_root(syn) if syn.cache else None)
     out.mkdir(parents=True, exist_ok=True)
     if folder.resolve() != out.resolve():
         for item in folder.iterdir():
             if item.is_file():
                 shutil.copy2(item, out / item.name)
+        record = {**record, "box_source": inputs.box.source}  # this box's, not the cache's
+        (out / "controller.json").write_text(json.dumps(record, indent=2))
     text = with_box_source((out / "report.txt").read_text().rstrip(), inputs.box.source)
     if design is None:
         text += f"\n(from cache: {folder})"

@@ -6,6 +6,7 @@ real ``python -m cdqn.*`` in subprocesses, on a real SQLite store."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import re
 import tempfile
@@ -224,7 +225,8 @@ def test_a_tuned_preset_on_another_id_is_that_ids_run(tmp_path: Path) -> None:
     """A tuned preset sets the environment it was tuned on (id, kwargs, cap, threshold, box);
     with another ``env.id`` the run is that id's: its label, cap and threshold, no foreign
     kwargs, a measured box, the preset's exploration kept; other kwargs on its own id
-    relabel it; its own id is left as it is."""
+    relabel it; its own id is left as it is.  A preset written without ``extra.tuned.env_id``
+    is read by its label's id."""
     tuned_on = [f"env.id={TOY}", "+env.kwargs.step_reward=-2.0", "controller=hinf_f"]
     with command_line(tuned_on):
         cfg = adopt(compose_config(tuned_on)).cfg
@@ -233,14 +235,18 @@ def test_a_tuned_preset_on_another_id_is_that_ids_run(tmp_path: Path) -> None:
     cfg.weights.theta_bounds.theta1 = [3.0, 4.0]
     best = SimpleNamespace(number=3, value=-20.0, params={})
     tune = SimpleNamespace(study=f"{KWARGS_LABEL}-hinf_f", trials=1, seeds=1, seed=100, space={})
-    write_preset(cfg, "tuned_toy", tmp_path, best, tune)
-    base = ["controller=hinf_f", "weights=tuned_toy", f"hydra.searchpath=[file://{tmp_path}]"]
-    for extra, name in [
+    path = write_preset(cfg, "tuned_toy", tmp_path, best, tune)
+    text = path.read_text()  # a preset written before the id was recorded
+    assert f"    env_id: {TOY}\n" in text
+    path.with_name("tuned_old.yaml").write_text(text.replace(f"    env_id: {TOY}\n", ""))
+    cases = [
         ([], KWARGS_LABEL),
         (["env.kwargs.step_reward=-3.0"], f"{LABEL}.step_reward--3.0"),
         (["env.id=Acrobot-v1"], "Acrobot-v1"),
         (["env.id=Acrobot-v1", "env.max_episode_steps=40"], "Acrobot-v1-cap40"),
-    ]:
+    ]
+    for preset, (extra, name) in itertools.product(["tuned_toy", "tuned_old"], cases):
+        base = ["controller=hinf_f", f"weights={preset}", f"hydra.searchpath=[file://{tmp_path}]"]
         with command_line(base + extra):
             adopted = adopt(compose_config(base + extra))
             assert adopt(adopted.cfg).change is None  # idempotent
@@ -252,7 +258,8 @@ def test_a_tuned_preset_on_another_id_is_that_ids_run(tmp_path: Path) -> None:
         if not own_id:
             assert conf.env.kwargs == {} and conf.env.solve_threshold == -100.0
             assert conf.env.max_episode_steps == (40 if len(extra) == 2 else 500)
-            assert adopted.change.startswith(f"weights=tuned_toy was tuned on {TOY}: ")
+            tuned_on = TOY if preset == "tuned_toy" else LABEL
+            assert adopted.change.startswith(f"weights=tuned_toy was tuned on {tuned_on}: ")
 
 
 def test_generic_weights_on_a_presets_id_measure_their_box() -> None:

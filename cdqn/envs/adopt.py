@@ -62,6 +62,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import re
 from collections.abc import Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
@@ -286,12 +287,13 @@ def _label(env: DictConfig, spec: EnvSpec) -> str:
 def _tuned_elsewhere(cfg: DictConfig, spec: EnvSpec, given: frozenset[str]) -> str | None:
     """The environment a tuned preset (``extra.tuned``, :mod:`cdqn.tuning.presets`) was tuned
     on, when the run is not that environment (the command line gives another ``env.id``,
-    constructor arguments or cap): its ``env.id``, or its label for a preset that does not
-    record the id.  None for any other configuration, or when ``env.name`` is given."""
+    constructor arguments or cap): its ``env.id``, or for a preset that does not record the
+    id, the id's part of its label (``FrozenLake-v1`` of ``FrozenLake-v1-cap50.is_slippery-false``).
+    None for any other configuration, or when ``env.name`` is given."""
     tuned = OmegaConf.select(cfg, "extra.tuned", default=None)
     if not OmegaConf.is_dict(tuned) or "env.name" in given or cfg.env.name == _label(cfg.env, spec):
         return None
-    return str(tuned.get("env_id") or cfg.env.name)
+    return str(tuned.get("env_id") or re.sub(r"-cap\d+$", "", str(cfg.env.name).split(".")[0]))
 
 
 def _leave_tuned_env(

@@ -98,10 +98,10 @@ class RunLifecycle:
         rec = Recorder.start(uri=self.uri, experiment=conf.tracking.experiment,
                              run_name=run_name(conf, m.seed), params=flatten(container),
                              tags=run_tags, config=container)  # fmt: skip
-        if setup.design:
-            rec.log_dict(setup.design, Artifact.DESIGN_RECORD)
         if setup.artifacts is not None:
             rec.log_dir(setup.artifacts, folder(Artifact.DESIGN))
+        if setup.design:  # after the folder: the record names this run's box source
+            rec.log_dict(setup.design, Artifact.DESIGN_RECORD)
         m.recorder = rec
         m.store = CheckpointStore(rec.client, rec.run_id, conf.train.signals, self.kind)
         log.debug("MLflow run %s (%s, %s, seed %d)",
