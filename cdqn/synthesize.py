@@ -90,7 +90,12 @@ def synthesize(cfg: DictConfig) -> str:
         raise ConfigError(
             f"controller={conf.controller.name!r}: synthesize designs hinf, hinf_f or h2"
         )
-    from cdqn.control.design import cache_root, design_inputs, with_box_source
+    from cdqn.control.design import (
+        cache_root,
+        design_inputs,
+        with_box_source,
+        with_record_source,
+    )
     from cdqn.control.synthesis import load_or_design
 
     box = None
@@ -116,7 +121,7 @@ def synthesize(cfg: DictConfig) -> str:
         for item in folder.iterdir():
             if item.is_file():
                 shutil.copy2(item, out / item.name)
-        record = {**record, "box_source": inputs.box.source}  # this box's, not the cache's
+        record = with_record_source(record, inputs.box.source)  # this box's, not the cache's
         (out / "controller.json").write_text(json.dumps(record, indent=2))
     text = with_box_source((out / "report.txt").read_text().rstrip(), inputs.box.source)
     if design is None:

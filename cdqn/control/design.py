@@ -216,6 +216,12 @@ def with_box_source(report_text: str, source: str) -> str:
     return report_text.replace(BOX_LINE, f"NTK box ({source}):", 1)
 
 
+def with_record_source(record: dict[str, Any], source: str) -> dict[str, Any]:
+    """A cached design's record (``controller.json``) with the source of the box it serves
+    now as ``box_source`` (:func:`with_box_source` does the same for the report)."""
+    return {**record, "box_source": source}
+
+
 def report(design: ControllerDesign) -> str:
     """Human-readable design report (the box's line without its source: :data:`BOX_LINE`)."""
     c = design.certificate

@@ -48,7 +48,13 @@ def synthesized_controller(cfg: ControllerConfig, weights: WeightsConfig, discou
     """The certified synthesised controller of a run (``controller.design=synthesize``);
     ``box`` overrides the config box (a measured one).  A design the cache holds is read
     back; only a new one loads python-control and the synthesis (seconds to import)."""
-    from cdqn.control.design import cache_root, cached_design, design_inputs, runtime_from_record
+    from cdqn.control.design import (
+        cache_root,
+        cached_design,
+        design_inputs,
+        runtime_from_record,
+        with_record_source,
+    )
 
     inputs = design_inputs(cfg, weights, discount, lr, box)
     cache_dir = cache_root(cfg.synthesis) if cfg.synthesis.cache else None
@@ -59,7 +65,7 @@ def synthesized_controller(cfg: ControllerConfig, weights: WeightsConfig, discou
         record, folder, _ = load_or_design(inputs, cache_dir)
     else:
         record, folder = found
-    record = {**record, "box_source": inputs.box.source}  # this run's, not the cache entry's
+    record = with_record_source(record, inputs.box.source)  # this run's, not the cache's
     ctrl = runtime_from_record(record, lr, cfg)
     return ControllerSetup(ctrl, source="synthesized", design=record, artifacts=folder)
 
